@@ -1,0 +1,277 @@
+"""Configuration: frozen dataclasses and the presets `tiny`, `small` and `paper`.
+
+Every hyper-parameter, ablation switch and path the library uses lives here, so that each
+ablation of the paper is a `key=value` override (see `apply_overrides`):
+
+    cfg = get_config("tiny")
+    cfg = apply_overrides(cfg, ["unet.use_rgg=false", "stage2.sky_loss=false"])
+
+Presets:
+  * `paper`: the paper's MTSA-UNet widths (32, 64, 128, 256, bottleneck 512, 6 classes),
+    Depth Anything V2 `vits`, 50 epochs per stage, the paper's batch sizes.
+  * `small`: a few hundred thousand UNet parameters and a small ViT; minutes on a CPU, used for
+    the committed synthetic-benchmark results.
+  * `tiny`: a few thousand UNet parameters and a 2-block ViT; seconds on a CPU, used by the
+    tests and the quickstart.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+CLASS_NAMES: tuple[str, ...] = ("sky", "building", "car", "bicycle", "road", "tree")
+"""Semantic classes of the paper, in label order (label 255 = unlabelled)."""
+IGNORE_LABEL = 255
+SKY_CLASS = 0
+
+
+@dataclass(frozen=True)
+class UNetConfig:
+    """MTSA-UNet sizes and switches."""
+
+    widths: tuple[int, ...] = (32, 64, 128, 256)  # encoder stage channels
+    bottleneck: int = 512
+    num_classes: int = 6
+    use_rgg: bool = True  # False: plain skip connections (the paper's ablation)
+    rgg_alpha: float = 0.5  # balance of feature guidance vs input-gradient guidance
+    bn_momentum: float = 0.9
+    raw_scale: str = "fixed"  # 'fixed' (counts / 2^14) or 'percentile' (per-image 1-99 % clip)
+
+
+@dataclass(frozen=True)
+class DepthConfig:
+    """Depth Anything V2 choice (see `irdepth_jax.models.depth_anything_config`)."""
+
+    encoder: str = "vits"  # vits | vitb | vitl | vitg | tiny
+    metric: bool = True  # metric head (sigmoid * max_depth) vs relative head (ReLU)
+    max_depth: float = 80.0
+    input_height: int = 252  # network input, multiples of 14
+    input_width: int = 322
+    checkpoint: str | None = None  # released .pth / .safetensors to start Stage II from
+    dtype: str = "float32"  # compute dtype: float32 | bfloat16 (params stay float32)
+    remat: bool = False  # rematerialise transformer blocks to save memory
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    """Where the frames come from and how they are shaped."""
+
+    source: str = "synthetic"  # synthetic | folder | ms2
+    path: str | None = None  # dataset root for folder / ms2
+    height: int = 256
+    width: int = 320
+    num_frames: int = 2292  # synthetic: total frames (Stage II split 1500/400/392)
+    num_labeled: int = 800  # synthetic: labelled frames (600/100/100)
+    augment: bool = True
+    min_depth: float = 1e-3
+    max_depth: float = 80.0
+
+
+@dataclass(frozen=True)
+class Stage1Config:
+    """Stage I: MTSA-UNet pre-training (I-1) and soft multi-task fine-tuning (I-2)."""
+
+    optimizer: str = "adadelta"  # adadelta | adamw
+    learning_rate: float = 1.0  # I-1 rate (AdaDelta's customary 1.0; always explicit)
+    stage12_learning_rate: float = 0.1  # I-2 rate of encoder + reconstruction + gradient branch
+    seg_lr_multiplier: float = 10.0  # I-2 segmentation branch rate = multiplier x the rate above
+    weight_decay: float = 1e-4  # adamw only
+    accum_steps: int = 4  # gradient accumulation (micro-batches per update)
+    batch_size: int = 4  # per update, before accumulation split
+    epochs_i1: int = 50
+    epochs_i2: int = 50
+    steps_i1: int | None = None  # overrides epochs when set
+    steps_i2: int | None = None
+    recon_loss: str = "l1"  # l1 | l2
+    w_rec: float = 0.1  # I-2 weight of the reconstruction loss
+    w_seg: float = 1.0  # I-2 weight of the cross-entropy
+    w_grad: float = 1.0  # weight of the gradient (saturation) branch loss
+    multitask: bool = True  # False: single-task baselines (the paper's tables 2/3)
+
+
+@dataclass(frozen=True)
+class Stage2Config:
+    """Stage II: Depth Anything V2 fine-tuning on the HSV pseudo-RGB image."""
+
+    preprocessing: str = "hsv"  # hsv | he | clahe | camera | rgb
+    learning_rate: float = 5e-6  # backbone rate; the head gets head_lr_multiplier x this
+    head_lr_multiplier: float = 10.0
+    weight_decay: float = 0.01
+    poly_power: float = 0.9
+    batch_size: int = 4
+    epochs: int = 50
+    steps: int | None = None  # overrides epochs when set
+    silog_lambda: float = 0.5
+    sky_loss: bool = True
+    lambda_sky: float = 0.1
+    sky_loss_kind: str = "l1"  # l1 | l2
+    hue_mode: str = "soft"  # soft (circular mean of class hues) | argmax
+
+
+@dataclass(frozen=True)
+class Config:
+    """Everything a run needs."""
+
+    name: str = "paper"
+    seed: int = 0
+    unet: UNetConfig = field(default_factory=UNetConfig)
+    depth: DepthConfig = field(default_factory=DepthConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    stage1: Stage1Config = field(default_factory=Stage1Config)
+    stage2: Stage2Config = field(default_factory=Stage2Config)
+    log_every: int = 10
+    eval_every: int = 500
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+
+
+def _paper() -> Config:
+    return Config(name="paper")
+
+
+def _small() -> Config:
+    return Config(
+        name="small",
+        unet=UNetConfig(widths=(8, 16, 32, 64), bottleneck=128),
+        depth=DepthConfig(encoder="small", input_height=112, input_width=140),
+        data=DataConfig(height=128, width=160, num_frames=480, num_labeled=160),
+        stage1=Stage1Config(batch_size=8, epochs_i1=15, epochs_i2=15, accum_steps=2),
+        stage2=Stage2Config(batch_size=8, epochs=15, learning_rate=1e-4),
+        log_every=10,
+        eval_every=200,
+        checkpoint_every=200,
+    )
+
+
+def _tiny() -> Config:
+    return Config(
+        name="tiny",
+        unet=UNetConfig(widths=(4, 8, 8, 16), bottleneck=16),
+        depth=DepthConfig(encoder="tiny", input_height=56, input_width=70),
+        data=DataConfig(height=64, width=80, num_frames=96, num_labeled=48),
+        stage1=Stage1Config(batch_size=4, epochs_i1=4, epochs_i2=4, accum_steps=2),
+        stage2=Stage2Config(batch_size=4, epochs=4, learning_rate=2e-4),
+        log_every=5,
+        eval_every=50,
+        checkpoint_every=50,
+    )
+
+
+PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny}
+
+
+def get_config(preset: str = "paper") -> Config:
+    """Returns a fresh `Config` for a preset name (`paper`, `small`, `tiny`)."""
+    try:
+        return PRESETS[preset]()
+    except KeyError:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}") from None
+
+
+def _parse_value(text: str, current: Any, key: str) -> Any:
+    """Parses an override value to the type of the field it replaces."""
+    lowered = text.strip().lower()
+    if lowered in ("none", "null"):
+        return None
+    if isinstance(current, bool):
+        if lowered in ("1", "true", "yes", "on"):
+            return True
+        if lowered in ("0", "false", "no", "off"):
+            return False
+        raise ValueError(f"config key {key!r} expects true/false, got {text!r}")
+    if isinstance(current, int) and not isinstance(current, bool):
+        try:
+            return int(text)
+        except ValueError:
+            raise ValueError(f"config key {key!r} expects an integer, got {text!r}") from None
+    if isinstance(current, float):
+        try:
+            return float(text)
+        except ValueError:
+            raise ValueError(f"config key {key!r} expects a number, got {text!r}") from None
+    if isinstance(current, tuple):
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            raise ValueError(f"config key {key!r} expects a tuple like (1, 2), got {text!r}") from None
+        return tuple(value) if isinstance(value, (list, tuple)) else (value,)
+    if current is None:  # optional field: guess from the text
+        try:
+            return ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            return text
+    return text
+
+
+def apply_overrides(cfg: Config, overrides: list[str] | tuple[str, ...]) -> Config:
+    """Returns `cfg` with `section.key=value` (or top-level `key=value`) overrides applied.
+
+    Raises ValueError naming the key for an unknown key, a malformed item or a bad value.
+    """
+    for item in overrides:
+        if "=" not in item:
+            raise ValueError(f"override {item!r} is not of the form key=value")
+        key, text = item.split("=", 1)
+        key = key.strip()
+        parts = key.split(".")
+        if len(parts) == 1:
+            cfg = _replace_field(cfg, parts[0], text, key)
+        elif len(parts) == 2:
+            section_name, field_name = parts
+            section = _get_field(cfg, section_name, key)
+            if not dataclasses.is_dataclass(section):
+                raise ValueError(f"unknown config key {key!r}")
+            cfg = dataclasses.replace(
+                cfg, **{section_name: _replace_field(section, field_name, text, key)}
+            )
+        else:
+            raise ValueError(f"unknown config key {key!r}")
+    return cfg
+
+
+def _get_field(obj: Any, name: str, key: str) -> Any:
+    names = {f.name for f in dataclasses.fields(obj)}
+    if name not in names:
+        raise ValueError(f"unknown config key {key!r}; known here: {', '.join(sorted(names))}")
+    return getattr(obj, name)
+
+
+def _replace_field(obj: Any, name: str, text: str, key: str) -> Any:
+    current = _get_field(obj, name, key)
+    if dataclasses.is_dataclass(current):
+        raise ValueError(f"config key {key!r} is a section; set one of its fields")
+    return dataclasses.replace(obj, **{name: _parse_value(text, current, key)})
+
+
+def to_dict(cfg: Config) -> dict:
+    """The config as plain JSON-able dicts (for logs and checkpoints)."""
+    return dataclasses.asdict(cfg)
+
+
+def from_dict(d: dict) -> Config:
+    """Inverse of `to_dict`; unknown keys raise ValueError."""
+    sections = {
+        "unet": UNetConfig,
+        "depth": DepthConfig,
+        "data": DataConfig,
+        "stage1": Stage1Config,
+        "stage2": Stage2Config,
+    }
+    kwargs = {}
+    for key, value in d.items():
+        if key in sections:
+            cls = sections[key]
+            known = {f.name: f for f in dataclasses.fields(cls)}
+            unknown = set(value) - set(known)
+            if unknown:
+                raise ValueError(f"unknown config keys in {key!r}: {sorted(unknown)}")
+            value = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
+            kwargs[key] = cls(**value)
+        elif key in {f.name for f in dataclasses.fields(Config)}:
+            kwargs[key] = value
+        else:
+            raise ValueError(f"unknown config key {key!r}")
+    return Config(**kwargs)

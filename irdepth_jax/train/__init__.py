@@ -1,0 +1,1 @@
+"""Staged training: states and optimizers, steps, data parallelism, checkpoints, loops."""
