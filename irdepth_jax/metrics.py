@@ -1,0 +1,355 @@
+"""Evaluation metrics: depth (with alignment), image quality (PSNR, SSIM, entropy), mIoU.
+
+Depth metrics follow Depth Anything V2's `metric_depth/util/metric.py` (per image, then the mean
+over images), with the validity range of its training script and the MS2 protocol's prediction
+clamp and per-image alignment:
+
+* valid = mask & (min_depth <= gt <= max_depth); images with fewer than 10 valid pixels are
+  skipped (they count in no mean and not in 'count');
+* alignment (optional, per image, on the valid pixels): 'median' scales pred by
+  median(gt) / median(pred) (metric models in the MS2 protocol); 'scale_shift' fits s, t by
+  least squares on depth, min sum (s * pred + t - gt)^2 (for a relative model that predicts
+  disparity, invert it to depth first);
+* then pred is clamped to [min_depth, max_depth];
+* thresh = max(gt / p, p / gt); d_k = mean(thresh < 1.25^k); abs_rel = mean(|p - gt| / gt);
+  sq_rel = mean((p - gt)^2 / gt); rmse = sqrt(mean((p - gt)^2));
+  rmse_log = sqrt(mean((ln p - ln gt)^2)); log10 = mean(|log10 p - log10 gt|);
+  silog = sqrt(mean(d^2) - 0.5 * mean(d)^2) with d = ln p - ln gt: the SiLog *loss* formula with
+  lambda 0.5 and no x100 factor, exactly as Depth Anything V2 evaluates it (KITTI's benchmark
+  uses lambda 1 and x100; the numbers are not comparable with that one).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Iterable, Sequence
+
+import dm_pix
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from irdepth_jax.losses import silog_loss
+
+__all__ = [
+    "DEPTH_METRICS",
+    "DepthMetricAccumulator",
+    "confusion_matrix",
+    "depth_metrics",
+    "entropy",
+    "mean_iou",
+    "per_class_iou",
+    "per_image_depth_metrics",
+    "psnr",
+    "ssim",
+]
+
+DEPTH_METRICS: tuple[str, ...] = (
+    "d1", "d2", "d3", "abs_rel", "sq_rel", "rmse", "rmse_log", "log10", "silog"
+)
+MIN_VALID_PIXELS = 10
+_ALIGNMENTS = (None, "median", "scale_shift")
+
+
+def _masked_median(x: jnp.ndarray, valid: jnp.ndarray) -> jnp.ndarray:
+    """Median over (H, W) of each image's valid pixels, (B,); NaN for an image with none."""
+    return jnp.nanmedian(jnp.where(valid, x, jnp.nan), axis=(1, 2))
+
+
+def _align(pred: jnp.ndarray, gt: jnp.ndarray, valid: jnp.ndarray, align: str | None):
+    """Per-image alignment of pred (B, H, W) to gt on the valid pixels."""
+    if align is None:
+        return pred
+    if align == "median":
+        med_pred = _masked_median(pred, valid)
+        med_gt = _masked_median(gt, valid)
+        ok = jnp.isfinite(med_pred) & (med_pred > 0) & jnp.isfinite(med_gt)
+        scale = jnp.where(ok, med_gt / jnp.where(ok, med_pred, 1.0), 1.0)
+        return pred * scale[:, None, None]
+    # Closed-form least squares for (s, t) from masked sums.
+    w = valid.astype(pred.dtype)
+    n = w.sum(axis=(1, 2))
+    sp, sg = (w * pred).sum(axis=(1, 2)), (w * gt).sum(axis=(1, 2))
+    spp, spg = (w * pred * pred).sum(axis=(1, 2)), (w * pred * gt).sum(axis=(1, 2))
+    det = n * spp - sp * sp
+    ok = det > 1e-12 * jnp.maximum(n * spp, 1.0)  # pred not constant on the valid pixels
+    scale = jnp.where(ok, (n * spg - sp * sg) / jnp.where(ok, det, 1.0), 0.0)
+    shift = (sg - scale * sp) / jnp.maximum(n, 1.0)
+    return pred * scale[:, None, None] + shift[:, None, None]
+
+
+@functools.partial(jax.jit, static_argnames=("align",))
+def _per_image(pred, gt, mask, align, min_depth, max_depth):
+    valid = mask & (gt >= min_depth) & (gt <= max_depth)
+    pred = jnp.clip(_align(pred, gt, valid, align), min_depth, max_depth)
+    # Safe values off the mask so no log / divide sees a zero (gradients stay finite too).
+    p = jnp.where(valid, pred, 1.0)
+    g = jnp.where(valid, gt, 1.0)
+    count = valid.sum(axis=(1, 2))
+    denom = jnp.maximum(count, 1).astype(jnp.float32)
+
+    def mean(x):
+        return jnp.where(valid, x, 0.0).sum(axis=(1, 2)) / denom
+
+    thresh = jnp.maximum(g / p, p / g)
+    diff = p - g
+    diff_log = jnp.log(p) - jnp.log(g)
+    out = {
+        "d1": mean(thresh < 1.25),
+        "d2": mean(thresh < 1.25**2),
+        "d3": mean(thresh < 1.25**3),
+        "abs_rel": mean(jnp.abs(diff) / g),
+        "sq_rel": mean(diff * diff / g),
+        "rmse": jnp.sqrt(mean(diff * diff)),
+        "rmse_log": jnp.sqrt(mean(diff_log * diff_log)),
+        "log10": mean(jnp.abs(diff_log) / jnp.log(10.0)),
+        "silog": jax.vmap(lambda a, b, m: silog_loss(a[None], b[None], m[None], lambd=0.5))(
+            p, g, valid
+        ),
+    }
+    out["used"] = count >= MIN_VALID_PIXELS
+    return out
+
+
+def _as_bhw(x, name: str) -> jnp.ndarray:
+    x = jnp.asarray(x)
+    if x.ndim == 4 and x.shape[-1] == 1:
+        x = x[..., 0]
+    if x.ndim != 3:
+        raise ValueError(
+            f"depth metrics: `{name}` must be (B, H, W) or (B, H, W, 1), got {x.shape}"
+        )
+    return x
+
+
+def per_image_depth_metrics(
+    pred,
+    gt,
+    mask=None,
+    align: str | None = None,
+    min_depth: float = 1e-3,
+    max_depth: float = 80.0,
+) -> dict[str, jnp.ndarray]:
+    """Depth metrics of each image (see the module docstring for the definitions).
+
+    Args:
+      pred: (B, H, W) or (B, H, W, 1) predicted depth.
+      gt: ground-truth depth, same shape.
+      mask: optional bool, same shape: pixels with a label (None: all).
+      align: None, 'median' or 'scale_shift'.
+      min_depth, max_depth: valid gt range and prediction clamp.
+    Returns:
+      dict of (B,) float32 arrays, one per name in `DEPTH_METRICS`, plus 'used' (B,) bool:
+      whether the image has >= 10 valid pixels (the metrics of unused images are meaningless).
+    """
+    if align not in _ALIGNMENTS:
+        raise ValueError(f"depth metrics: `align` must be one of {_ALIGNMENTS}, got {align!r}")
+    pred = _as_bhw(pred, "pred").astype(jnp.float32)
+    gt = _as_bhw(gt, "gt").astype(jnp.float32)
+    if pred.shape != gt.shape:
+        raise ValueError(f"depth metrics: `pred` {pred.shape} and `gt` {gt.shape} differ")
+    mask = jnp.ones(gt.shape, bool) if mask is None else _as_bhw(mask, "mask").astype(bool)
+    return _per_image(pred, gt, mask, align, min_depth, max_depth)
+
+
+def depth_metrics(
+    pred,
+    gt,
+    mask=None,
+    align: str | None = None,
+    min_depth: float = 1e-3,
+    max_depth: float = 80.0,
+) -> dict[str, float]:
+    """Depth metrics averaged over the images of a batch that have >= 10 valid pixels.
+
+    Args: as `per_image_depth_metrics`.
+    Returns:
+      dict: each name in `DEPTH_METRICS` -> float (NaN when no image is usable) and
+      'count' -> int, the number of images averaged.
+    """
+    acc = DepthMetricAccumulator(align=align, min_depth=min_depth, max_depth=max_depth)
+    acc.update(pred, gt, mask)
+    return acc.result()["all"]
+
+
+class DepthMetricAccumulator:
+    """Streams per-image depth metrics over batches; overall and per-condition means.
+
+    Usage:
+      acc = DepthMetricAccumulator(align="median")
+      for batch in data: acc.update(pred, gt, mask, conditions=batch["condition"])
+      acc.result()  # {'all': {...}, 'day': {...}, 'night': {...}}
+
+    Sums of per-image metrics are kept in float64 on the host, so the result is the mean over
+    all usable images seen (not a mean of batch means).
+    """
+
+    def __init__(self, align: str | None = None, min_depth: float = 1e-3, max_depth: float = 80.0):
+        if align not in _ALIGNMENTS:
+            raise ValueError(f"DepthMetricAccumulator: `align` must be one of {_ALIGNMENTS}")
+        self.align, self.min_depth, self.max_depth = align, min_depth, max_depth
+        self._sums: dict[str, np.ndarray] = {}
+        self._counts: dict[str, int] = {}
+
+    def update(self, pred, gt, mask=None, conditions: str | Sequence[str] | None = None) -> None:
+        """Adds a batch.
+
+        Args:
+          pred, gt, mask: as `per_image_depth_metrics`.
+          conditions: None, one name for the whole batch, or B names (e.g. 'day', 'night').
+        """
+        per_image = per_image_depth_metrics(
+            pred, gt, mask, self.align, self.min_depth, self.max_depth
+        )
+        values = np.stack([np.asarray(per_image[k], np.float64) for k in DEPTH_METRICS], axis=1)
+        used = np.asarray(per_image["used"])
+        batch = values.shape[0]
+        if conditions is None:
+            names: Iterable[str | None] = [None] * batch
+        elif isinstance(conditions, str):
+            names = [conditions] * batch
+        else:
+            names = list(conditions)
+            if len(names) != batch:
+                raise ValueError(
+                    f"DepthMetricAccumulator.update: {len(names)} conditions for {batch} images"
+                )
+        for row, is_used, name in zip(values, used, names):
+            if not is_used:
+                continue
+            for group in ("all",) if name is None else ("all", str(name)):
+                self._sums[group] = self._sums.get(group, 0.0) + row
+                self._counts[group] = self._counts.get(group, 0) + 1
+
+    def result(self) -> dict[str, dict[str, float]]:
+        """{'all': metrics, condition: metrics, ...}; each has the `DEPTH_METRICS` means and
+        'count'. 'all' is present even when empty (NaN metrics, count 0)."""
+        out = {}
+        for group in ["all"] + sorted(g for g in self._counts if g != "all"):
+            n = self._counts.get(group, 0)
+            means = self._sums[group] / n if n else np.full(len(DEPTH_METRICS), np.nan)
+            out[group] = {k: float(v) for k, v in zip(DEPTH_METRICS, means)}
+            out[group]["count"] = n
+        return out
+
+
+def _as_images(a, b, name: str) -> tuple[jnp.ndarray, jnp.ndarray, bool]:
+    """(H, W) / (H, W, C) / (B, H, W, C) -> float32 NHWC-compatible rank 3 or 4, + batched?"""
+    a = jnp.asarray(a, jnp.float32)
+    b = jnp.asarray(b, jnp.float32)
+    if a.shape != b.shape:
+        raise ValueError(f"{name}: image shapes differ: {a.shape} vs {b.shape}")
+    if a.ndim == 2:
+        return a[..., None], b[..., None], False
+    if a.ndim in (3, 4):
+        return a, b, a.ndim == 4
+    raise ValueError(f"{name}: expected (H, W), (H, W, C) or (B, H, W, C), got {a.shape}")
+
+
+@jax.jit
+def psnr(a, b, data_range: float = 1.0) -> jnp.ndarray:
+    """Peak signal-to-noise ratio in dB, 10 log10(data_range^2 / MSE) (inf for equal images).
+
+    Args:
+      a, b: (H, W), (H, W, C) or (B, H, W, C) images of the same shape.
+      data_range: max - min of the value range (1.0 for [0, 1], 255 for 8-bit values).
+    Returns:
+      scalar for a single image, (B,) for a batch.
+    """
+    a, b, _ = _as_images(a, b, "psnr")
+    return dm_pix.psnr(a / data_range, b / data_range)
+
+
+@jax.jit
+def ssim(a, b, data_range: float = 1.0) -> jnp.ndarray:
+    """Structural similarity, Gaussian window 11x11 (sigma 1.5), k1 0.01, k2 0.03.
+
+    `dm_pix.ssim`: equal (to float32 precision) to
+    skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.5,
+    use_sample_covariance=False, data_range=data_range[, channel_axis=-1]): both average the
+    SSIM map over the region the window fits in and average channels equally.
+
+    Args:
+      a, b: (H, W), (H, W, C) or (B, H, W, C) images of the same shape, H, W >= 11.
+      data_range: max - min of the value range.
+    Returns:
+      scalar for a single image, (B,) for a batch.
+    """
+    a, b, _ = _as_images(a, b, "ssim")
+    return dm_pix.ssim(a, b, max_val=data_range)
+
+
+@jax.jit
+def entropy(img) -> jnp.ndarray:
+    """Shannon entropy in bits of the 256-bin histogram of all values of an 8-bit image.
+
+    Args:
+      img: uint8 array of any shape (one image; call per image for a batch).
+    Returns:
+      float32 scalar in [0, 8].
+    """
+    img = jnp.asarray(img)
+    if img.dtype != jnp.uint8:
+        raise ValueError(f"entropy: `img` must be uint8, got {img.dtype}")
+    p = jnp.bincount(img.ravel(), length=256) / img.size
+    return -jnp.sum(jnp.where(p > 0, p * jnp.log2(jnp.where(p > 0, p, 1.0)), 0.0))
+
+
+@functools.partial(jax.jit, static_argnames=("num_classes", "ignore_label"))
+def confusion_matrix(pred_labels, labels, num_classes: int, ignore_label: int = 255):
+    """Confusion matrix counts, rows = ground truth, columns = prediction.
+
+    Pixels whose label is `ignore_label` (or outside [0, num_classes), as is a prediction out of
+    range) are not counted.
+
+    Args:
+      pred_labels: integer array (any shape), predicted classes.
+      labels: integer array of the same shape, ground truth.
+      num_classes: C.
+      ignore_label: label of unlabelled pixels.
+    Returns:
+      (C, C) int32. Sum batches on the host in int64 for large datasets (int32 overflows past
+      2^31 pixels).
+    """
+    pred_labels = jnp.asarray(pred_labels).astype(jnp.int32).ravel()
+    labels = jnp.asarray(labels).astype(jnp.int32).ravel()
+    valid = (
+        (labels != ignore_label)
+        & (labels >= 0) & (labels < num_classes)
+        & (pred_labels >= 0) & (pred_labels < num_classes)
+    )
+    index = jnp.where(valid, labels * num_classes + pred_labels, 0)
+    counts = jnp.bincount(index, weights=valid.astype(jnp.int32), length=num_classes**2)
+    return counts.astype(jnp.int32).reshape(num_classes, num_classes)
+
+
+def per_class_iou(cm) -> tuple[jnp.ndarray, jnp.ndarray]:
+    """IoU of each class from a confusion matrix: TP / (TP + FP + FN).
+
+    Args:
+      cm: (C, C) counts, rows = ground truth, columns = prediction.
+    Returns:
+      (iou (C,) float32, present (C,) bool): present = the class occurs in the ground truth or
+      in the prediction; absent classes get IoU 0 (no NaN).
+    """
+    cm = jnp.asarray(cm, jnp.float32)
+    tp = jnp.diag(cm)
+    union = cm.sum(axis=0) + cm.sum(axis=1) - tp
+    present = union > 0
+    return jnp.where(present, tp / jnp.where(present, union, 1.0), 0.0), present
+
+
+def mean_iou(cm) -> jnp.ndarray:
+    """Mean IoU over the classes present in the ground truth or the prediction.
+
+    A class absent from both has no defined IoU and is left out (counting it as 1 or 0 would
+    move the mean with the number of classes a split happens to lack). A class predicted but
+    absent from the ground truth counts, with IoU 0. No class present -> 0.
+
+    Args:
+      cm: (C, C) counts, rows = ground truth, columns = prediction.
+    Returns:
+      float32 scalar in [0, 1].
+    """
+    iou, present = per_class_iou(cm)
+    return jnp.sum(iou) / jnp.maximum(jnp.sum(present), 1)
