@@ -1,0 +1,143 @@
+"""MS2 (Multi-Spectral Stereo, CVPR 2023) thermal depth data as irdepth sample dicts.
+
+Layout read (only the parts thermal monocular depth needs):
+
+```
+ROOT/
+  train_list.txt  val_list.txt  test_day_list.txt  test_night_list.txt  test_rainy_list.txt
+                                  one sequence name per line (names start with '_')
+  sync_data/<seq>/thr/img_left/<name>.png             16-bit raw thermal (counts ~3000-6000)
+  proj_depth/<seq>/thr/depth_filtered/<name>.png      uint16 depth, metres * 256, 0 = none
+```
+
+Splits: 'train', 'val', 'test_day', 'test_night', 'test_rainy', and 'test' (the three test
+lists together). The condition of a frame comes from the test list holding its sequence
+('day', 'night', 'rainy'); train / val sequences are not labelled by MS2, so their condition is
+the one of a test list naming the same sequence, else the `conditions` mapping given to the
+constructor, else 'unknown'.
+
+Frames are the img_left PNGs that have a depth_filtered file (others are skipped and counted in
+`skipped`), sorted by sequence then name. `stride` keeps every stride-th frame of each sequence
+(counted from its first frame): the MS2 evaluation protocol uses every 10th test frame, i.e.
+`MS2Dataset(root, 'test_day', stride=10)`.
+
+Raw counts must fit in 14 bits: a frame with a count over 16383 raises DatasetError naming the
+file (a 16-bit rescaled export, not sensor counts). `ir8` is `camera_like(raw)`; MS2 has no
+aligned RGB or segmentation here: rgb zeros (has_rgb False), seg all 255 (labeled False).
+"""
+
+from __future__ import annotations
+
+import pathlib
+
+import numpy as np
+
+from irdepth_jax.config import IGNORE_LABEL
+from irdepth_jax.data.folder import DEPTH_SCALE, DatasetError, read_png
+from irdepth_jax.imaging.raw import RAW_MAX
+
+LIST_FILES = {"train": "train_list.txt", "val": "val_list.txt", "test_day": "test_day_list.txt",
+              "test_night": "test_night_list.txt", "test_rainy": "test_rainy_list.txt"}
+_TEST_CONDITION = {"test_day": "day", "test_night": "night", "test_rainy": "rainy"}
+SPLITS = tuple(LIST_FILES) + ("test",)
+
+
+def _read_list(path: pathlib.Path) -> list[str]:
+    if not path.is_file():
+        raise DatasetError(f"{path}: missing split list")
+    try:
+        return [line.strip() for line in path.read_text().splitlines() if line.strip()]
+    except UnicodeDecodeError:
+        raise DatasetError(f"{path}: not a text file") from None
+
+
+class MS2Dataset:
+    """Reader of one MS2 split; `ds[i]` -> sample dict (keys as `FolderDataset`).
+
+    Args:
+      root: MS2 root (holding the *_list.txt files, sync_data/ and proj_depth/).
+      split: one of SPLITS.
+      stride: keep every stride-th frame of each sequence (10 = the MS2 test protocol).
+      conditions: optional {sequence: condition} for sequences no test list names.
+    """
+
+    def __init__(self, root, split: str, stride: int = 1, conditions: dict | None = None):
+        self.root = pathlib.Path(root)
+        if not self.root.is_dir():
+            raise DatasetError(f"{self.root}: not a directory")
+        if not (self.root / "sync_data").is_dir():
+            raise DatasetError(f"{self.root}: not an MS2 root (no sync_data/ directory)")
+        if split not in SPLITS:
+            raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
+        if stride < 1:
+            raise ValueError(f"stride must be >= 1, got {stride}")
+        self.split, self.stride = split, stride
+        known = dict(conditions or {})
+        for name, cond in _TEST_CONDITION.items():
+            path = self.root / LIST_FILES[name]
+            if path.is_file():
+                known.update({seq: cond for seq in _read_list(path)})
+        parts = list(_TEST_CONDITION) if split == "test" else [split]
+        self.records: list[dict] = []
+        self.skipped = 0
+        for part in parts:
+            for seq in _read_list(self.root / LIST_FILES[part]):
+                img_dir = self.root / "sync_data" / seq / "thr" / "img_left"
+                if not img_dir.is_dir():
+                    raise DatasetError(
+                        f"{img_dir}: missing (sequence {seq!r} of {LIST_FILES[part]})")
+                cond = _TEST_CONDITION.get(part) or known.get(seq, "unknown")
+                for k, img in enumerate(sorted(img_dir.glob("*.png"))):
+                    if k % stride:
+                        continue
+                    depth = self.root / "proj_depth" / seq / "thr" / "depth_filtered" / img.name
+                    if not depth.is_file():
+                        self.skipped += 1
+                        continue
+                    self.records.append(dict(id=f"{seq}/{img.stem}", split=split, seg_split=None,
+                                             condition=cond, labeled=False, raw_path=str(img),
+                                             depth_path=str(depth)))
+        if not self.records:
+            raise DatasetError(f"{self.root}: no thermal frames with depth in split {split!r}")
+        self._max_depth: float | None = None
+
+    def __len__(self) -> int:
+        return len(self.records)
+
+    def __getitem__(self, i: int) -> dict:
+        """Sample dict of frame i: raw14, ir8, rgb (zeros), has_rgb, depth, valid, seg, labeled,
+        condition, id."""
+        from irdepth_jax.imaging.tonemap import camera_like
+
+        r = self.records[i]
+        raw = read_png(r["raw_path"], np.uint16, 1)
+        if raw.max() > RAW_MAX:
+            raise DatasetError(f"{r['raw_path']}: counts up to {raw.max()}, over 14 bits "
+                               "(expected raw sensor counts)")
+        counts = read_png(r["depth_path"], np.uint16, 1)
+        if counts.shape != raw.shape:
+            raise DatasetError(
+                f"{r['depth_path']}: shape {counts.shape}, thermal frame {raw.shape}")
+        return dict(raw14=raw, ir8=np.asarray(camera_like(raw), np.uint8),
+                    rgb=np.zeros(raw.shape + (3,), np.uint8), has_rgb=False,
+                    depth=counts.astype(np.float32) / DEPTH_SCALE, valid=counts > 0,
+                    seg=np.full(raw.shape, IGNORE_LABEL, np.uint8), labeled=False,
+                    condition=r["condition"], id=r["id"])
+
+    def indices(self, split: str | None = None, labeled: bool | None = None,
+                seg_split: str | None = None) -> np.ndarray:
+        """Frame indices matching the filters; this dataset holds one split and no labels, so
+        `split` must be None or this split, labeled=True or a seg_split give no frames."""
+        if split is not None and split != self.split:
+            raise ValueError(f"this MS2Dataset holds split {self.split!r}, asked for {split!r}")
+        if labeled or seg_split is not None:
+            return np.zeros(0, np.int64)
+        return np.arange(len(self.records), dtype=np.int64)
+
+    def max_depth(self, split: str | None = None) -> float:
+        """Largest valid depth (metres) over the frames (reads every depth PNG once; cached)."""
+        self.indices(split=split)
+        if self._max_depth is None:
+            self._max_depth = max(float(read_png(r["depth_path"], np.uint16, 1).max())
+                                  for r in self.records) / DEPTH_SCALE
+        return self._max_depth
