@@ -1,0 +1,217 @@
+"""Orbax checkpoints: periodic saves, keep-last-K, exact resume and the Stage I -> II hand-off.
+
+A checkpoint step directory holds three items:
+
+* ``model``: ``{'params', 'batch_stats'}`` - all a later stage, `evaluate` or `predict` needs;
+* ``train``: ``{'opt_state', 'step', 'rng'}`` - the optimizer's progress, for resuming;
+* ``frozen`` (optional): non-trained variables the model needs (Stage II: the frozen Stage I
+  UNet), so a Stage II checkpoint alone can predict;
+* ``meta``: JSON ``{'stage', 'step', 'config', 'data_state', ...}`` - the stage tag
+  (``stage1_i1`` | ``stage1_i2`` | ``stage2``), the run's config (`config.to_dict`) and the
+  loader position (``Loader.get_state()``), so a resumed run continues with the next batch.
+
+Orbax writes each step into a temporary directory and renames it when complete, so a run killed
+during a save leaves a ``<step>.orbax-checkpoint-tmp-*`` directory that is never listed as a
+step: restore picks the last finalised one (and the manager removes the leftover on start).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import numpy as np
+import orbax.checkpoint as ocp
+
+from irdepth_jax.train.state import STAGES, TrainState, path_to_str
+
+class CheckpointError(ValueError):
+    """A checkpoint that is missing, of another stage or of another shape (one-line message)."""
+
+
+class Checkpointer:
+    """An orbax `CheckpointManager` for one stage's run directory.
+
+    Args:
+      directory: where step directories go (created if missing, unless `read_only`).
+      stage: the stage tag written into (and expected from) the checkpoints.
+      max_to_keep: keep the last K finalised steps (None: all).
+      save_every: periodic saves every this many steps (`save(..., force=True)` always saves).
+      read_only: open an existing directory without creating or cleaning anything.
+    """
+
+    def __init__(self, directory: str, stage: str, max_to_keep: int | None = 3,
+                 save_every: int = 1, read_only: bool = False):
+        if stage not in STAGES:
+            raise ValueError(f"unknown stage {stage!r}; choose one of {STAGES}")
+        self.directory = os.path.abspath(directory)
+        self.stage = stage
+        if read_only and not os.path.isdir(self.directory):
+            raise CheckpointError(f"checkpoint directory {directory} does not exist")
+        options = ocp.CheckpointManagerOptions(
+            max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1),
+            cleanup_tmp_directories=not read_only, create=not read_only, read_only=read_only)
+        handlers = {"model": ocp.StandardCheckpointHandler(),
+                    "train": ocp.StandardCheckpointHandler(),
+                    "frozen": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+        self.manager = ocp.CheckpointManager(self.directory, options=options,
+                                             item_handlers=handlers)
+
+    def latest_step(self) -> int | None:
+        """The last finalised step (None when there is none)."""
+        return self.manager.latest_step()
+
+    def all_steps(self) -> list[int]:
+        return list(self.manager.all_steps())
+
+    def save(self, step: int, state: TrainState, meta: Mapping[str, Any], frozen: Any = None,
+             force: bool = False) -> bool:
+        """Saves `state` (host or replicated arrays) and `frozen` at `step` if due (or `force`).
+
+        Returns whether a save was started (saves are asynchronous; see `wait`).
+        """
+        items = state.checkpoint_items()
+        meta = {**meta, "stage": self.stage, "step": int(step)}
+        args = {"model": ocp.args.StandardSave(items["model"]),
+                "train": ocp.args.StandardSave(items["train"]),
+                "meta": ocp.args.JsonSave(_jsonable(meta))}
+        if frozen is not None:
+            args["frozen"] = ocp.args.StandardSave(frozen)
+        return self.manager.save(int(step), force=force, args=ocp.args.Composite(**args))
+
+    def read_meta(self, step: int | None = None) -> dict:
+        """The JSON meta of `step` (latest by default); CheckpointError if there is none."""
+        step = self._resolve(step)
+        return dict(self.manager.restore(
+            step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
+
+    def restore(self, template: TrainState, step: int | None = None, model_only: bool = False
+                ) -> tuple[TrainState, dict]:
+        """Restores into the structure, shapes and shardings of `template`.
+
+        Args:
+          template: a state of this stage built from the same config (its values are ignored).
+          step: which step (the latest finalised by default).
+          model_only: restore params + batch_stats only (keep `template`'s optimizer and step).
+        Returns:
+          (state, meta).
+        Raises:
+          CheckpointError naming the directory when there is no checkpoint, it is of another
+          stage, or its arrays do not match the template (first mismatching path).
+        """
+        step = self._resolve(step)
+        meta = self.read_meta(step)
+        if meta.get("stage") != self.stage:
+            raise CheckpointError(
+                f"checkpoint {self.directory} step {step} is a {meta.get('stage')!r} checkpoint, "
+                f"expected {self.stage!r}")
+        items = template.checkpoint_items()
+        names = ("model",) if model_only else ("model", "train")
+        stored = self.manager.item_metadata(step)
+        for name in names:
+            _check_shapes(stored[name].tree, items[name], f"{self.directory} step {step} {name}")
+        restored = self.manager.restore(step, args=ocp.args.Composite(**{
+            name: ocp.args.StandardRestore(_abstract(items[name])) for name in names}))
+        return template.from_checkpoint_items({n: restored[n] for n in names}), meta
+
+    def wait(self) -> None:
+        """Blocks until pending asynchronous saves are finalised."""
+        self.manager.wait_until_finished()
+
+    def close(self) -> None:
+        self.manager.close()
+
+    def _resolve(self, step: int | None) -> int:
+        if step is None:
+            step = self.latest_step()
+            if step is None:
+                raise CheckpointError(f"no finished checkpoint in {self.directory}")
+        elif step not in self.manager.all_steps():
+            raise CheckpointError(f"no checkpoint step {step} in {self.directory}")
+        return step
+
+
+def restore_items(directory: str, stage: str | tuple[str, ...], templates: Mapping[str, Any],
+                  step: int | None = None) -> tuple[dict, dict]:
+    """Reads items of a finished run of `stage` (e.g. Stage I for Stage II, or for predict).
+
+    Args:
+      directory: the checkpoint directory (``WORKDIR/checkpoints/<phase>``).
+      stage: accepted stage tag(s).
+      templates: item name ('model', 'frozen', 'train') -> tree with the expected shapes.
+      step: the step (the latest finalised by default).
+    Returns:
+      ({item: restored tree}, meta). CheckpointError for a missing / other-stage / other-shape
+      checkpoint, naming it.
+    """
+    stages = (stage,) if isinstance(stage, str) else tuple(stage)
+    reader = Checkpointer(directory, stages[0], max_to_keep=None, read_only=True)
+    try:
+        meta = reader.read_meta(step)
+        if meta.get("stage") not in stages:
+            raise CheckpointError(f"checkpoint {reader.directory} is a {meta.get('stage')!r} "
+                                  f"checkpoint, expected {' or '.join(stages)}")
+        step = int(meta["step"])
+        stored = reader.manager.item_metadata(step)
+        for name, template in templates.items():
+            if stored.get(name) is None:
+                raise CheckpointError(f"checkpoint {reader.directory} step {step} has no {name!r}")
+            _check_shapes(stored[name].tree, template, f"{reader.directory} step {step} {name}")
+        restored = reader.manager.restore(step, args=ocp.args.Composite(**{
+            name: ocp.args.StandardRestore(_abstract(t)) for name, t in templates.items()}))
+        return {name: restored[name] for name in templates}, meta
+    finally:
+        reader.close()
+
+
+def restore_model(directory: str, stage: str | tuple[str, ...], template_model: Mapping[str, Any],
+                  step: int | None = None) -> tuple[dict, dict]:
+    """``{'params', 'batch_stats'}`` and meta of a finished run of `stage` (see `restore_items`)."""
+    items, meta = restore_items(directory, stage, {"model": template_model}, step)
+    return dict(items["model"]), meta
+
+
+def _abstract(tree: Any) -> Any:
+    """ShapeDtypeStructs of `tree`, keeping shardings of jax arrays (host arrays: device 0)."""
+    default = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
+
+    def spec(x):
+        sharding = x.sharding if isinstance(x, jax.Array) else default
+        return jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype if not isinstance(
+            x, jax.Array) else x.dtype, sharding=sharding)
+
+    return jax.tree.map(spec, tree)
+
+
+def _check_shapes(stored: Any, expected: Any, where: str) -> None:
+    """Raises CheckpointError at the first path whose presence or shape differs."""
+    def table(tree):
+        leaves = jax.tree_util.tree_flatten_with_path(
+            tree, is_leaf=lambda x: hasattr(x, "shape") and not isinstance(x, dict))[0]
+        return {path_to_str(p): tuple(getattr(v, "shape", ())) for p, v in leaves}
+
+    have, want = table(stored), table(expected)
+    for path in sorted(set(have) | set(want)):
+        if path not in have:
+            raise CheckpointError(f"checkpoint {where} lacks {path} (another model or config?)")
+        if path not in want:
+            raise CheckpointError(f"checkpoint {where} has unexpected {path} "
+                                  "(another model or config?)")
+        if have[path] != want[path]:
+            raise CheckpointError(f"checkpoint {where}: {path} has shape {have[path]}, this "
+                                  f"config expects {want[path]}")
+
+
+def _jsonable(value: Any) -> Any:
+    """Tuples -> lists, numpy scalars -> Python (orbax's JsonSave wants plain JSON)."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return value
