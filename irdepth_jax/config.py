@@ -158,7 +158,7 @@ def _tiny() -> Config:
     # per-coordinate step starts near sqrt(eps) = 1e-3 and needs far more than ~200 updates).
     return Config(
         name="tiny",
-        unet=UNetConfig(widths=(4, 8, 8, 16), bottleneck=16, raw_scale="percentile"),
+        unet=UNetConfig(widths=(4, 4, 4, 4), bottleneck=8, raw_scale="percentile"),
         depth=DepthConfig(encoder="tiny", input_height=56, input_width=70),
         data=DataConfig(height=64, width=80, num_frames=96, num_labeled=48),
         stage1=Stage1Config(batch_size=4, epochs_i1=10, epochs_i2=8, accum_steps=2,

@@ -77,7 +77,9 @@ def check_outputs(out, batch, num_classes):
 
 def test_tiny_train_step_shapes_ranges_and_finite_grads(tiny):
     cfg, model, raw, variables = tiny
-    print(f"\ntiny MTSA-UNet parameters: {param_count(variables['params'])}")
+    count = param_count(variables['params'])
+    print(f"\ntiny MTSA-UNet parameters: {count}")
+    assert 1_000 <= count <= 10_000, "the tiny preset should have a few thousand parameters"
 
     def loss_fn(params):
         out, updates = model.apply(
