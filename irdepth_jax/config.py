@@ -139,13 +139,17 @@ def _paper() -> Config:
 
 
 def _small() -> Config:
+    # Sized so that the seven experiment tables x 3 seeds run in about half an hour on 2 CPU
+    # cores. Stage II rate: from a random-init ViT, 1e-4 (head 1e-3) drove the metric head's
+    # sigmoid into saturation (prediction ~max_depth everywhere, zero gradient) within 10 steps
+    # on 2 of 3 seeds; 3e-5 trained on all of them.
     return Config(
         name="small",
         unet=UNetConfig(widths=(8, 16, 32, 64), bottleneck=128),
         depth=DepthConfig(encoder="small", input_height=112, input_width=140),
         data=DataConfig(height=128, width=160, num_frames=480, num_labeled=160),
-        stage1=Stage1Config(batch_size=8, epochs_i1=15, epochs_i2=15, accum_steps=2),
-        stage2=Stage2Config(batch_size=8, epochs=15, learning_rate=1e-4),
+        stage1=Stage1Config(batch_size=8, epochs_i1=2, epochs_i2=4, accum_steps=1),
+        stage2=Stage2Config(batch_size=8, epochs=2, learning_rate=3e-5),
         log_every=10,
         eval_every=200,
         checkpoint_every=200,
