@@ -16,7 +16,6 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")  # one core: numpy / OpenCV single
 import time  # noqa: E402
 
 import cv2  # noqa: E402
-import numpy as np  # noqa: E402
 
 from irdepth_jax.data.synthetic import CONDITIONS, render_scene  # noqa: E402
 from irdepth_jax.imaging.tonemap import camera_like  # noqa: E402

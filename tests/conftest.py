@@ -1,11 +1,20 @@
-"""Test setup: 4 fake CPU devices for the multi-device tests, set before JAX starts."""
+"""Test setup, before JAX starts: 4 fake CPU devices for the multi-device tests, and one XLA
+compilation cache per test run, shared by the tests and the CLI subprocesses they start (so each
+training step compiles once per run; a fresh directory keeps the run's time honest)."""
 
+import atexit
 import os
+import shutil
+import tempfile
 
 os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
 ).strip()
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    _cache = tempfile.mkdtemp(prefix="irdepth_test_xla_")
+    atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+    os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
 
 import jax  # noqa: E402  (must come after the flags above)
 import pytest  # noqa: E402

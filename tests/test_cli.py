@@ -3,7 +3,6 @@
 import json
 import os
 import signal
-import tempfile
 
 import cv2
 import jax
@@ -17,10 +16,6 @@ from irdepth_jax.train import loop
 from irdepth_jax.train.checkpoint import Checkpointer, restore_model
 from irdepth_jax.train.loop import WALL_CLOCK_FIELDS, init_unet
 from irdepth_jax.train.state import TrainState
-
-# Compiled steps persist across test runs (and across the runs inside this module).
-jax.config.update("jax_compilation_cache_dir", jax.config.jax_compilation_cache_dir
-                  or os.path.join(tempfile.gettempdir(), "irdepth_test_xla_cache"))
 
 QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 

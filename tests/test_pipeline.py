@@ -1,7 +1,5 @@
 """raw -> MTSA-UNet -> HSV -> RGB -> Depth Anything V2 as pure jit-able functions; Stage II loss."""
 
-import os
-import tempfile
 
 import cv2
 import jax
@@ -18,9 +16,6 @@ from irdepth_jax.models.pipeline import (depth_from_rgb, depth_input, hsv_pseudo
                                          predict_depth, sky_mask, unet_outputs, unet_to_hsv)
 from irdepth_jax.train.loop import host_image, init_depth, init_unet
 from irdepth_jax.train.steps import stage2_loss_fn
-
-jax.config.update("jax_compilation_cache_dir", jax.config.jax_compilation_cache_dir
-                  or os.path.join(tempfile.gettempdir(), "irdepth_test_xla_cache"))
 
 CFG = get_config("tiny")
 

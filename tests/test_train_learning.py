@@ -4,10 +4,7 @@ This is the quickstart's pipeline (about 2-4 minutes on 2 CPU cores), so it is m
 run it with `python -m pytest -m slow tests/test_train_learning.py`.
 """
 
-import os
-import tempfile
 
-import jax
 import pytest
 
 from irdepth_jax.config import get_config
@@ -15,9 +12,6 @@ from irdepth_jax.data.folder import write_synthetic_dataset
 from irdepth_jax.evaluate import evaluate_stage1, evaluate_stage2
 from irdepth_jax.train.loop import (DataSource, RunOptions, init_depth, init_unet, make_parallel,
                                     train_stage1, train_stage2)
-
-jax.config.update("jax_compilation_cache_dir", jax.config.jax_compilation_cache_dir
-                  or os.path.join(tempfile.gettempdir(), "irdepth_test_xla_cache"))
 
 
 @pytest.mark.slow

@@ -1,7 +1,5 @@
 """Train states, parameter groups and the optimizers of Stage I-1, I-2 and II; the stage losses."""
 
-import os
-import tempfile
 
 import jax
 import jax.numpy as jnp
@@ -15,9 +13,6 @@ from irdepth_jax.train.loop import device_batch, init_unet
 from irdepth_jax.train.state import (TrainState, base_optimizer, label_params, stage1_optimizer,
                                      stage2_optimizer)
 from irdepth_jax.train.steps import make_train_step, stage1_loss_fn, stage1_targets
-
-jax.config.update("jax_compilation_cache_dir", jax.config.jax_compilation_cache_dir
-                  or os.path.join(tempfile.gettempdir(), "irdepth_test_xla_cache"))
 
 CFG = get_config("tiny")
 

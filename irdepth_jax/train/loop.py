@@ -542,10 +542,8 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
             tx, lr_fns = stage1_optimizer(cfg, phase_name, variables["params"])
             state = TrainState.create(variables["params"], variables["batch_stats"], tx,
                                       jax.random.PRNGKey(cfg.seed), lr_fns)
-            evaluate = None
-            if opts.eval and len(val[1]):
-                def evaluate(st):
-                    return evaluate_stage1(cfg, _unet_vars(st), *val, dp)["all"]
+            evaluate = ((lambda st: evaluate_stage1(cfg, _unet_vars(st), *val, dp)["all"])
+                        if opts.eval and len(val[1]) else None)
             stream = BatchStream(make_loader(dataset, idx, s1.batch_size, cfg.seed, True, cfg))
             phase = Phase(phase_name, state, (stage1_loss_fn, cfg, phase_name),
                           s1.accum_steps, s1.batch_size, total, stream, evaluate=evaluate,
@@ -610,10 +608,8 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                           len(train_idx), s2.batch_size)
         tx, lr_fns = stage2_optimizer(cfg, params, total)
         state = TrainState.create(params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
-        evaluate = None
-        if opts.eval and len(val[1]):
-            def evaluate(st):
-                return evaluate_stage2(cfg, unet, st.params, *val, dp)["all"]
+        evaluate = ((lambda st: evaluate_stage2(cfg, unet, st.params, *val, dp)["all"])
+                    if opts.eval and len(val[1]) else None)
         stream = BatchStream(make_loader(dataset, train_idx, s2.batch_size, cfg.seed, True, cfg))
         frozen = None if unet is None else {"unet": unet}
         phase = Phase("stage2", state, (stage2_loss_fn, cfg, ref_depth), 1, s2.batch_size, total,
