@@ -1,0 +1,22 @@
+"""Table 6: semantic segmentation with vs without the RGG module.
+
+    python experiments/table6_rgg_segmentation.py --preset small --seeds 0 1 2
+
+The same two Stage I runs as table 5 (shared through the run cache), read for mIoU.
+"""
+
+from runner import SEG_COLUMNS, Arm, Table, main
+
+TABLE = Table(
+    name="table6_rgg_segmentation",
+    title="Table 6: semantic segmentation with vs without RGG",
+    about=("mIoU of the full Stage I with RGG and with plain skip connections "
+           "(`unet.use_rgg=false`); the same runs as table 5."),
+    arms=(Arm("with RGG", "stage1"),
+          Arm("without RGG", "stage1", ("unet.use_rgg=false",))),
+    columns=SEG_COLUMNS,
+    paper={"with RGG": dict(miou=0.6313), "without RGG": dict(miou=0.5988)},
+)
+
+if __name__ == "__main__":
+    main(TABLE)
