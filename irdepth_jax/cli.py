@@ -216,6 +216,10 @@ def build_parser() -> argparse.ArgumentParser:
     def progress_flag(p):
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
+    def compile_cache_flag(p):
+        p.add_argument("--no-compile-cache", action="store_true",
+                       help="do not use the persistent XLA compilation cache")
+
     p = sub.add_parser("synth", help="render a synthetic LWIR dataset (our folder format)",
                        description="Render procedural LWIR street scenes (raw 14-bit, 8-bit, RGB, "
                                    "LiDAR-like depth, labels) into a folder dataset.")
@@ -260,8 +264,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="multi-host: coordinator address (with --num-processes, --process-id)")
     p.add_argument("--num-processes", type=int, help="multi-host: number of processes")
     p.add_argument("--process-id", type=int, help="multi-host: this process's index")
-    p.add_argument("--no-compile-cache", action="store_true",
-                   help="do not use the persistent XLA compilation cache")
+    compile_cache_flag(p)
     progress_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
     p.set_defaults(func=cmd_train)
@@ -278,8 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="dataset format (default: auto-detect)")
     p.add_argument("--split", default="test", help="split to evaluate (default test)")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
-    p.add_argument("--no-compile-cache", action="store_true",
-                   help="do not use the persistent XLA compilation cache")
+    compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                    help="config overrides (e.g. data.max_depth=50)")
     p.set_defaults(func=cmd_eval)
@@ -293,8 +295,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a Stage II (or Stage I) workdir or checkpoint directory")
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
-    p.add_argument("--no-compile-cache", action="store_true",
-                   help="do not use the persistent XLA compilation cache")
+    compile_cache_flag(p)
     p.set_defaults(func=cmd_predict, overrides=[])
 
     p = sub.add_parser("quickstart", help="synth -> Stage I -> Stage II -> eval on a tiny model",
@@ -307,8 +308,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="tiny", choices=("tiny", "small", "paper"),
                    help="config preset (default tiny)")
     p.add_argument("--devices", type=int, help="number of devices (default: all)")
-    p.add_argument("--no-compile-cache", action="store_true",
-                   help="do not use the persistent XLA compilation cache")
+    compile_cache_flag(p)
     progress_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
     p.set_defaults(func=cmd_quickstart)

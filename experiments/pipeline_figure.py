@@ -1,0 +1,91 @@
+"""What the trained pipeline does to test frames: raw -> H, S, V -> pseudo-RGB -> depth.
+
+    python experiments/pipeline_figure.py            # small preset, seed 0, synthetic benchmark
+
+Uses the Stage II run of table 1's HSV row (trained by the table scripts and cached; trained
+here if not) and draws, for one test frame per lighting condition: the raw 14-bit frame, the
+H (semantics), S (radiation gradients) and V (texture) channels of MTSA-UNet, the pseudo-RGB
+image, the predicted depth and the ground truth (LiDAR-like sparse depth; dense depth where the
+dataset has it). Writes experiments/results/pipeline_examples.png.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+import numpy as np
+
+import runner
+
+
+def main(argv=None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.strip().splitlines()[0])
+    ap.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
+    ap.add_argument("--seed", type=int, default=0, help="training seed of the run (default 0)")
+    ap.add_argument("--data", default=None, help="dataset directory (default: synthetic)")
+    ap.add_argument("--cache", default=runner.DEFAULT_CACHE, help="the table scripts' cache")
+    ap.add_argument("--quick", action="store_true", help="tiny preset, 2 steps per phase")
+    ap.add_argument("--out", default=os.path.join(runner.RESULTS, "pipeline_examples.png"))
+    args = ap.parse_args(argv)
+
+    import jax
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from irdepth_jax.evaluate import colorize_depth, load_model
+    from irdepth_jax.imaging.color import hsv_to_rgb
+    from irdepth_jax.models.pipeline import depth_from_rgb, unet_outputs, unet_to_hsv
+
+    ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,
+                         data=args.data, cache=args.cache)
+    cfg, _, model = load_model(ctx.workdir(runner.Arm("HSV (ours)", "stage2"), args.seed))
+    dataset, indices = ctx.source.frames(runner.EVAL_SPLIT)
+    samples = {}
+    for i in indices:  # the first test frame of each condition, at most four rows
+        s = dataset[int(i)]
+        samples.setdefault(s["condition"], s)
+        if len(samples) == 4:
+            break
+    samples = list(samples.values())
+
+    raw = np.stack([s["raw14"] for s in samples])
+    hsv = np.asarray(jax.jit(lambda v, r: unet_to_hsv(unet_outputs(v, r, cfg),
+                                                      cfg.stage2.hue_mode))(model["unet"], raw))
+    rgb = np.asarray(hsv_to_rgb(hsv))
+    depth = np.asarray(jax.jit(lambda p, x: depth_from_rgb(p, x, cfg))(model["depth"], rgb))
+
+    titles = ("raw 14-bit (1-99 % stretch)", "H: semantics", "S: gradients", "V: texture",
+              "pseudo-RGB", "predicted depth", "ground truth (LiDAR-like)")
+    fig, axes = plt.subplots(len(samples), len(titles), figsize=(2.1 * len(titles),
+                                                                 1.9 * len(samples) + 0.6),
+                             squeeze=False)
+    max_depth = cfg.data.max_depth
+    for row, s, h, x, d in zip(axes, samples, hsv, rgb, depth):
+        lo, hi = np.percentile(s["raw14"], (1, 99))
+        gt = colorize_depth(s["depth"], max_depth) * s["valid"][..., None]
+        images = (s["raw14"], h[..., 0], h[..., 1], h[..., 2], x,
+                  colorize_depth(d, max_depth), gt)
+        styles = (dict(cmap="gray", vmin=lo, vmax=hi), dict(cmap="hsv", vmin=0, vmax=1),
+                  dict(cmap="magma", vmin=0, vmax=1), dict(cmap="gray", vmin=0, vmax=1),
+                  {}, {}, {})
+        for ax, image, style in zip(row, images, styles):
+            ax.imshow(image, interpolation="nearest", **style)
+            ax.set_xticks([])
+            ax.set_yticks([])
+        row[0].set_ylabel(s["condition"])
+    for ax, title in zip(axes[0], titles):
+        ax.set_title(title, fontsize=8)
+    origin = "SYNTHETIC benchmark" if ctx.data_info["source"] == "synthetic" else ctx.data_path
+    fig.suptitle(f"{origin}, test split; preset {args.preset}, seed {args.seed}"
+                 f"{' (QUICK: untrained plumbing)' if args.quick else ''}; depth colour map "
+                 f"0-{max_depth:g} m (near = red)", fontsize=9)
+    fig.tight_layout()
+    os.makedirs(os.path.dirname(os.path.abspath(args.out)), exist_ok=True)
+    fig.savefig(args.out, dpi=110)
+    print(f"wrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()

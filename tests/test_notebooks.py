@@ -1,0 +1,74 @@
+"""Executes notebooks/*.ipynb on tiny settings (nbclient, kernel python3) into temporary copies.
+
+The quickstart reuses the experiment cache of tests/test_experiments.py (same session path, so
+its tiny --quick Stage I / II runs are not trained twice); the ablations notebook reads the
+committed results in experiments/results/.
+"""
+
+from __future__ import annotations
+
+import os
+
+import nbformat
+import pytest
+from nbclient import NotebookClient
+from test_experiments import load_runner, quick_cache_dir
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+NOTEBOOKS = os.path.join(REPO, "notebooks")
+
+
+def execute(name: str, out_dir) -> nbformat.NotebookNode:
+    """Runs notebooks/<name> in a python3 kernel (cwd notebooks/), writes the executed copy to
+    `out_dir` and returns it; a failing cell raises with its traceback."""
+    nb = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4)
+    client = NotebookClient(nb, timeout=600, kernel_name="python3",
+                            resources={"metadata": {"path": NOTEBOOKS}})
+    client.execute()
+    nbformat.write(nb, os.path.join(str(out_dir), name))
+    return nb
+
+
+def images(nb) -> int:
+    return sum("image/png" in o.get("data", {}) for c in nb.cells if c.cell_type == "code"
+               for o in c.get("outputs", []))
+
+
+def text(nb) -> str:
+    return "".join(o.get("text", "") for c in nb.cells if c.cell_type == "code"
+                   for o in c.get("outputs", []))
+
+
+@pytest.mark.parametrize("name", ["quickstart.ipynb", "ablations.ipynb"])
+def test_committed_without_outputs(name):
+    nb = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4)
+    nbformat.validate(nb)
+    code = [c for c in nb.cells if c.cell_type == "code"]
+    assert code and all(c.outputs == [] and c.execution_count is None for c in code)
+    assert any("parameters" in c.metadata.get("tags", []) for c in code)
+
+
+def test_quickstart_runs(tmp_path_factory, monkeypatch, tmp_path):
+    monkeypatch.setenv("IRDEPTH_NB_PRESET", "tiny")
+    monkeypatch.setenv("IRDEPTH_NB_QUICK", "1")
+    monkeypatch.setenv("IRDEPTH_NB_CACHE", quick_cache_dir(tmp_path_factory))
+    nb = execute("quickstart.ipynb", tmp_path)
+    assert images(nb) >= 3  # scenes, H/S/V + pseudo-RGB, depth maps
+    out = text(nb)
+    assert "these scenes:" in out and "abs_rel" in out
+    for group in ("all", "day", "dusk", "night"):
+        assert f"\n{group:6s}" in out
+
+
+def test_ablations_runs(monkeypatch, tmp_path):
+    results = os.path.join(REPO, "experiments", "results")
+    monkeypatch.setenv("IRDEPTH_RESULTS_DIR", results)
+    nb = execute("ablations.ipynb", tmp_path)
+    runner = load_runner()
+    records = runner.load_results(results)
+    assert len(records) == 7
+    assert images(nb) == len(records)
+    out = text(nb)
+    for record in records.values():
+        assert record["title"] in out
+    assert out.count("seeds agree") == len(runner.check_claims(records))
