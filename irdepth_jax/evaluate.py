@@ -265,7 +265,8 @@ RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy")
 
 
 def list_inputs(inputs: Sequence[str]) -> list[str]:
-    """Files named in `inputs` (folders: their .png / .tif / .tiff / .npy files, sorted)."""
+    """Files named in `inputs` (folders: their .png / .tif / .tiff / .npy files, sorted); a
+    RunError for a missing path, no frames, or two files with the same name stem."""
     files = []
     for item in inputs:
         if os.path.isdir(item):
@@ -277,6 +278,13 @@ def list_inputs(inputs: Sequence[str]) -> list[str]:
             raise RunError(f"{item}: no such file or directory")
     if not files:
         raise RunError(f"no raw frames (.png, .tif, .npy) in {', '.join(inputs)}")
+    seen = {}
+    for f in files:  # outputs are named by stem: two inputs must not write the same files
+        stem = os.path.splitext(os.path.basename(f))[0]
+        if stem in seen:
+            raise RunError(f"{f} and {seen[stem]}: same name {stem!r}, their outputs would "
+                           "overwrite each other (predict them into separate --out folders)")
+        seen[stem] = f
     return files
 
 

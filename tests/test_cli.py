@@ -156,6 +156,17 @@ def test_predict_rejects_8bit_files(stage1_run, tmp_path, capsys):
     code, _, err = run(["predict", "--checkpoint", stage1_run, "--out", tmp_path / "pred", over],
                        capsys)
     one_line_error(code, err, str(over))
+    assert not (tmp_path / "pred").exists()
+
+
+def test_predict_rejects_inputs_with_the_same_name(stage1_run, tmp_path, capsys):
+    for folder in ("a", "b"):
+        (tmp_path / folder).mkdir()
+        np.save(tmp_path / folder / "frame.npy", np.full((32, 48), 9000, np.uint16))
+    code, _, err = run(["predict", "--checkpoint", stage1_run, "--out", tmp_path / "pred",
+                        tmp_path / "a", tmp_path / "b" / "frame.npy"], capsys)
+    one_line_error(code, err, str(tmp_path / "b" / "frame.npy"), "same name 'frame'")
+    assert not (tmp_path / "pred").exists()
 
 
 # --------------------------------------------------------------------------- resume
