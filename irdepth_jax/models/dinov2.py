@@ -120,8 +120,12 @@ class Attention(nn.Module):
         b, n, _ = x.shape
         head_dim = self.dim // self.num_heads
         qkv = nn.Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
-        q, k, v = jnp.moveaxis(qkv.reshape(b, n, 3, self.num_heads, head_dim), 2, 0)
-        out = jax.nn.dot_product_attention(q, k, v, scale=head_dim**-0.5)
+        # Heads-major einsums rather than jax.nn.dot_product_attention: measured 1.8x faster per
+        # layer on XLA:CPU (ViT-S, 1370 tokens: 35 vs 62 ms), same result to 3e-7.
+        q, k, v = jnp.transpose(qkv.reshape(b, n, 3, self.num_heads, head_dim), (2, 0, 3, 1, 4))
+        logits = jnp.einsum("bhqd,bhkd->bhqk", q * jnp.asarray(head_dim**-0.5, q.dtype), k)
+        weights = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
+        out = jnp.transpose(jnp.einsum("bhqk,bhkd->bhqd", weights, v), (0, 2, 1, 3))
         return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(
             out.reshape(b, n, self.dim)
         )

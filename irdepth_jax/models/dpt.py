@@ -17,33 +17,32 @@ from typing import Any
 import flax.linen as nn
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def resize_bilinear_align_corners(x: jax.Array, size: tuple[int, int]) -> jax.Array:
     """Bilinear resize with PyTorch's align_corners=True semantics (corner pixels map onto corners).
 
     x: (B, H, W, C); size: (h, w) -> (B, h, w, C). Along an axis, output o samples the input at
-    o * (in - 1) / (out - 1) (at 0 when out == 1); done by `jax.image.scale_and_translate` with
-    scale s = (out - 1) / (in - 1) and translation 0.5 - s / 2, linear kernel, no antialiasing.
+    o * (in - 1) / (out - 1) (at 0 when out == 1), interpolating its two neighbours. Done as two
+    gathers and a lerp per axis: on XLA:CPU 5-35x faster than `jax.image.scale_and_translate`,
+    which contracts with dense (out, in) weight matrices (ViT-S head at 518: 12 vs 95 ms).
     """
-    scales, shifts = [], []
-    for n_in, n_out in zip(x.shape[1:3], size):
-        if n_in > 1 and n_out > 1:
-            s = (n_out - 1) / (n_in - 1)
-            scales.append(s)
-            shifts.append(0.5 - s / 2)
-        else:  # a single input row is broadcast; a single output row reads input row 0
-            scales.append(float(n_out) if n_in == 1 else 1.0)
-            shifts.append(0.0)
-    return jax.image.scale_and_translate(
-        x,
-        (x.shape[0], *size, x.shape[3]),
-        (1, 2),
-        jnp.asarray(scales, jnp.float32),
-        jnp.asarray(shifts, jnp.float32),
-        method="linear",
-        antialias=False,
-    )
+    return _lerp_axis(_lerp_axis(x, 1, size[0]), 2, size[1])
+
+
+def _lerp_axis(x: jax.Array, axis: int, n_out: int) -> jax.Array:
+    n_in = x.shape[axis]
+    step = (n_in - 1) / (n_out - 1) if n_in > 1 and n_out > 1 else 0.0
+    src = np.arange(n_out, dtype=np.float32) * np.float32(step)  # float32, as PyTorch computes it
+    lo = np.minimum(np.floor(src).astype(np.int32), n_in - 1)
+    hi = np.minimum(lo + 1, n_in - 1)
+    shape = [1] * x.ndim
+    shape[axis] = n_out
+    frac = jnp.asarray((src - lo).reshape(shape), jnp.float32)  # float32 also for bfloat16 x
+    below = jnp.take(x, lo, axis=axis).astype(jnp.float32)
+    above = jnp.take(x, hi, axis=axis).astype(jnp.float32)
+    return (below + (above - below) * frac).astype(x.dtype)
 
 
 def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, stride: int = 1) -> nn.Conv:
