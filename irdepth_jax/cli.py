@@ -145,7 +145,7 @@ def cmd_eval(args) -> int:
 
     path = args.checkpoint or args.workdir
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
-                          overrides=_overrides(args.overrides))
+                          overrides=_overrides(args.overrides), stride=args.stride)
     print(result["markdown"])
     out = args.out or path
     print(f"tables written to {out}/eval_{args.split}.md and .json")
@@ -280,6 +280,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", default="auto", choices=("auto", "folder", "ms2"),
                    help="dataset format (default: auto-detect)")
     p.add_argument("--split", default="test", help="split to evaluate (default test)")
+    p.add_argument("--stride", type=int, default=1, metavar="N",
+                   help="evaluate every N-th frame (MS2: of each sequence; the MS2 test "
+                        "protocol is --stride 10; default 1: all frames)")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
     compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",

@@ -207,7 +207,7 @@ def _read_meta(directory: str, stage: str) -> dict:
 
 def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                  out_dir: str | None = None, overrides: Sequence[str] = (),
-                 dp: DataParallel | None = None) -> dict:
+                 dp: DataParallel | None = None, stride: int = 1) -> dict:
     """Evaluates a run on a split and writes ``eval_<split>.md`` and ``.json``.
 
     Args:
@@ -215,12 +215,13 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
       data: the dataset directory (folder format or MS2).
       split: 'train' | 'val' | 'test' (MS2: also test_day / test_night / test_rainy).
       out_dir: where the tables go (default: `path`).
+      stride: evaluate every stride-th frame (MS2: of each sequence; its protocol is 10).
     Returns:
       {'stage', 'split', 'stage1': table or None, 'stage2': table or None, 'markdown'}.
     """
     cfg, stage, model = load_model(path, overrides)
     source = DataSource(data, fmt)
-    dataset, indices = source.frames(split)
+    dataset, indices = source.frames(split, stride=stride)
     if len(indices) == 0:
         raise RunError(f"--data {data}: split {split!r} has no frames")
     dp = dp or DataParallel("single")

@@ -279,3 +279,10 @@ def test_ms2_layout_is_detected(tmp_path, capsys):
     rows = read_metrics(work)
     assert [r["stage"] for r in rows] == ["stage1_i1", "stage1_i2"]
     assert rows[1]["ce"] == 0.0 and np.isfinite(rows[1]["loss"])
+    # the MS2 evaluation protocol: every N-th frame of each sequence
+    for stride, count in ((1, 4), (2, 2), (3, 2)):
+        code, out, err = run(["eval", "--workdir", work, "--data", root, "--split", "val",
+                              "--stride", str(stride), "--out", tmp_path / f"e{stride}"], capsys)
+        assert code == 0, err
+        with open(tmp_path / f"e{stride}" / "eval_val.json") as f:
+            assert json.load(f)["stage1"]["all"]["count"] == count

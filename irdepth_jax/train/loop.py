@@ -192,19 +192,22 @@ class DataSource:
             except (DatasetError, ValueError, OSError) as err:
                 raise RunError(f"--data {path}: {_one_line(err)}") from None
 
-    def frames(self, split: str, labeled: bool | None = None, optional: bool = False
-               ) -> tuple[Any, np.ndarray]:
-        """(dataset, indices) of the frames of `split` (and labelled ones when `labeled`).
+    def frames(self, split: str, labeled: bool | None = None, optional: bool = False,
+               stride: int = 1) -> tuple[Any, np.ndarray]:
+        """(dataset, indices) of the frames of `split` (and labelled ones when `labeled`), every
+        `stride`-th one (MS2: every stride-th frame of each sequence, its test protocol is 10).
 
         A split the dataset lacks raises RunError, or gives (None, []) when `optional`.
         """
+        if stride < 1:
+            raise RunError(f"stride {stride}: must be >= 1")
         try:
             if self._folder is not None:
-                return self._folder, self._folder.indices(split=split, labeled=labeled)
+                return self._folder, self._folder.indices(split=split, labeled=labeled)[::stride]
             from irdepth_jax.data.ms2 import MS2Dataset
-            if split not in self._ms2:
-                self._ms2[split] = MS2Dataset(self.path, split)
-            ds = self._ms2[split]
+            if (split, stride) not in self._ms2:
+                self._ms2[split, stride] = MS2Dataset(self.path, split, stride=stride)
+            ds = self._ms2[split, stride]
             return ds, ds.indices(labeled=labeled)
         except (self._error, ValueError, OSError) as err:
             if optional:
