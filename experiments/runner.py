@@ -391,12 +391,16 @@ def hardware() -> dict:
 
 
 def git_commit() -> str:
-    """HEAD commit of the repository (+ '-dirty' with uncommitted changes), or 'unknown'."""
+    """HEAD commit of the repository (+ '-dirty' with uncommitted changes to the code: the
+    package, the experiment scripts and pyproject.toml; not the results they write), or
+    'unknown'."""
+    code = ["irdepth_jax", "experiments", ":!experiments/results", "pyproject.toml"]
     try:
         head = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no"],
-                               capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no",
+                                "--", *code], capture_output=True, text=True,
+                               check=True).stdout.strip()
         return head + ("-dirty" if dirty else "")
     except (OSError, subprocess.CalledProcessError):
         return "unknown"
