@@ -17,6 +17,7 @@ step: restore picks the last finalised one (and the manager removes the leftover
 
 from __future__ import annotations
 
+import logging
 import os
 from collections.abc import Mapping
 from typing import Any
@@ -29,6 +30,17 @@ from irdepth_jax.train.state import STAGES, TrainState, path_to_str
 
 class CheckpointError(ValueError):
     """A checkpoint that is missing, of another stage or of another shape (one-line message)."""
+
+
+class _DropMessage(logging.Filter):
+    """Drops log records whose message starts with `prefix`."""
+
+    def __init__(self, prefix: str):
+        super().__init__()
+        self.prefix = prefix
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith(self.prefix)
 
 
 class Checkpointer:
@@ -51,13 +63,21 @@ class Checkpointer:
         if read_only and not os.path.isdir(self.directory):
             raise CheckpointError(f"checkpoint directory {directory} does not exist")
         options = ocp.CheckpointManagerOptions(
-            max_to_keep=max_to_keep, save_interval_steps=max(int(save_every), 1),
+            max_to_keep=max_to_keep,
+            save_interval_steps=0 if read_only else max(int(save_every), 1),
             cleanup_tmp_directories=not read_only, create=not read_only, read_only=read_only)
         handlers = {"model": ocp.StandardCheckpointHandler(),
                     "train": ocp.StandardCheckpointHandler(),
                     "frozen": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
-        self.manager = ocp.CheckpointManager(self.directory, options=options,
-                                             item_handlers=handlers)
+        absl_log = logging.getLogger("absl")
+        quiet = _DropMessage("Given directory is read only")  # orbax's warning for read_only=True
+        if read_only:
+            absl_log.addFilter(quiet)
+        try:
+            self.manager = ocp.CheckpointManager(self.directory, options=options,
+                                                 item_handlers=handlers)
+        finally:
+            absl_log.removeFilter(quiet)
 
     def latest_step(self) -> int | None:
         """The last finalised step (None when there is none)."""
