@@ -29,14 +29,11 @@ def main(argv=None) -> None:
     ap.add_argument("--out", default=os.path.join(runner.RESULTS, "pipeline_examples.png"))
     args = ap.parse_args(argv)
 
-    import jax
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from irdepth_jax.evaluate import colorize_depth, load_model
-    from irdepth_jax.imaging.color import hsv_to_rgb
-    from irdepth_jax.models.pipeline import depth_from_rgb, unet_outputs, unet_to_hsv
+    from irdepth_jax.evaluate import colorize_depth, depth_map, hsv_images, load_model
 
     ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,
                          data=args.data, cache=args.cache)
@@ -50,11 +47,9 @@ def main(argv=None) -> None:
             break
     samples = list(samples.values())
 
-    raw = np.stack([s["raw14"] for s in samples])
-    hsv = np.asarray(jax.jit(lambda v, r: unet_to_hsv(unet_outputs(v, r, cfg),
-                                                      cfg.stage2.hue_mode))(model["unet"], raw))
-    rgb = np.asarray(hsv_to_rgb(hsv))
-    depth = np.asarray(jax.jit(lambda p, x: depth_from_rgb(p, x, cfg))(model["depth"], rgb))
+    hsv, rgb = hsv_images(model["unet"], np.stack([s["raw14"] for s in samples]), cfg)
+    depth = np.asarray(depth_map(model["depth"], rgb, cfg))
+    hsv, rgb = np.asarray(hsv), np.asarray(rgb)
 
     titles = ("raw 14-bit (1-99 % stretch)", "H: semantics", "S: gradients", "V: texture",
               "pseudo-RGB", "predicted depth", "ground truth (LiDAR-like)")

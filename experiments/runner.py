@@ -164,6 +164,7 @@ class Context:
         if not jax.config.jax_compilation_cache_dir:
             enable_compilation_cache(os.path.join(self.cache, "xla"))
         self.data_path, self.data_info = self._dataset()
+        self.data_fingerprint = self._fingerprint()
         try:
             self.source = DataSource(self.data_path, args.format)
         except RunError as err:
@@ -193,7 +194,7 @@ class Context:
                                     overwrite=True)
         return path, info
 
-    def data_fingerprint(self) -> str:
+    def _fingerprint(self) -> str:
         """Hash of the dataset's manifest (MS2: its path), part of every run's hash."""
         manifest = os.path.join(self.data_path, "manifest.json")
         if os.path.exists(manifest):
@@ -212,15 +213,20 @@ class Context:
         except ValueError as err:
             raise SystemExit(f"{arm.label}: {err}") from None
         if arm.kind in ("stage1", "stage1_i1"):
-            cfg = dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
+            cfg = self.stage1_config(cfg)
         if arm.kind == "stage1_i1":
             cfg = i1_config(cfg, self.base)
         return cfg
 
+    def stage1_config(self, cfg):
+        """`cfg` with the base config's Stage II / depth sections: the key of the Stage I run
+        that Stage II runs of any Stage II / depth setting share."""
+        return dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
+
     def run_dir(self, kind: str, cfg) -> str:
         from irdepth_jax.config import to_dict
 
-        blob = json.dumps({"kind": kind, "config": to_dict(cfg), "data": self.data_fingerprint()},
+        blob = json.dumps({"kind": kind, "config": to_dict(cfg), "data": self.data_fingerprint},
                           sort_keys=True)
         return os.path.join(self.cache, "runs", f"{kind}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}")
 
@@ -305,7 +311,7 @@ class Context:
         cached = self._cached(workdir)
         if cached is not None:
             return cached
-        s1_cfg = dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
+        s1_cfg = self.stage1_config(cfg)
         self._stage1(s1_cfg)
         self._announce("stage2", cfg, workdir,
                        f"training Stage II ({cfg.stage2.preprocessing}, sky loss "

@@ -5,15 +5,15 @@
 The same two Stage I runs as table 5 (shared through the run cache), read for mIoU.
 """
 
-from runner import SEG_COLUMNS, Arm, Table, main
+from runner import SEG_COLUMNS, Table, main
+from table5_rgg_reconstruction import TABLE as RECONSTRUCTION
 
 TABLE = Table(
     name="table6_rgg_segmentation",
     title="Table 6: semantic segmentation with vs without RGG",
     about=("mIoU of the full Stage I with RGG and with plain skip connections "
            "(`unet.use_rgg=false`); the same runs as table 5."),
-    arms=(Arm("with RGG", "stage1"),
-          Arm("without RGG", "stage1", ("unet.use_rgg=false",))),
+    arms=RECONSTRUCTION.arms,
     columns=SEG_COLUMNS,
     paper={"with RGG": dict(miou=0.6313), "without RGG": dict(miou=0.5988)},
 )

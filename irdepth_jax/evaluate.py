@@ -323,13 +323,14 @@ def colorize_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
 
 
 @functools.partial(jax.jit, static_argnums=2)
-def _hsv_images(unet_vars: dict, raw: jax.Array, cfg: Config) -> tuple[jax.Array, jax.Array]:
-    """(HSV, pseudo-RGB), each (B, H, W, 3) in [0, 1], of raw frames (B, H, W)."""
+def hsv_images(unet_vars: dict, raw: jax.Array, cfg: Config) -> tuple[jax.Array, jax.Array]:
+    """(HSV, pseudo-RGB), each (B, H, W, 3) in [0, 1], of raw frames (B, H, W); jitted."""
     hsv = unet_to_hsv(unet_outputs(unet_vars, raw, cfg), cfg.stage2.hue_mode)
     return hsv, hsv_to_rgb(hsv)
 
 
-_depth = jax.jit(depth_from_rgb, static_argnums=2)
+depth_map = jax.jit(depth_from_rgb, static_argnums=2)
+"""`depth_from_rgb(da_params, rgb, cfg)` jitted: RGB (B, H, W, 3) in [0, 1] -> depth (B, H, W) m."""
 
 
 def predict_files(path: str, inputs: Sequence[str], out_dir: str,
@@ -357,14 +358,14 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         stem = os.path.join(out_dir, os.path.splitext(os.path.basename(name))[0])
         rgb = None
         if model["unet"] is not None:
-            hsv, rgb = _hsv_images(model["unet"], raw[None], cfg)
+            hsv, rgb = hsv_images(model["unet"], raw[None], cfg)
             cv2.imwrite(stem + "_rgb.png", to8(rgb)[..., ::-1])
             cv2.imwrite(stem + "_hsv.png", to8(hsv))
             written += [stem + "_rgb.png", stem + "_hsv.png"]
         if model["depth"] is not None:
             if cfg.stage2.preprocessing != "hsv":
                 rgb = host_image({"raw14": raw[None]}, cfg.stage2.preprocessing) / 255.0
-            depth = np.asarray(_depth(model["depth"], jnp.asarray(rgb, jnp.float32), cfg))[0]
+            depth = np.asarray(depth_map(model["depth"], jnp.asarray(rgb, jnp.float32), cfg))[0]
             counts = np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)
             cv2.imwrite(stem + "_depth.png", counts)
             cv2.imwrite(stem + "_depth_color.png",

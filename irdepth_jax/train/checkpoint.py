@@ -32,15 +32,9 @@ class CheckpointError(ValueError):
     """A checkpoint that is missing, of another stage or of another shape (one-line message)."""
 
 
-class _DropMessage(logging.Filter):
-    """Drops log records whose message starts with `prefix`."""
-
-    def __init__(self, prefix: str):
-        super().__init__()
-        self.prefix = prefix
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        return not str(record.msg).startswith(self.prefix)
+def _not_read_only_notice(record: logging.LogRecord) -> bool:
+    """Log filter: drops orbax's warning that a read_only=True manager's directory is read only."""
+    return not str(record.msg).startswith("Given directory is read only")
 
 
 class Checkpointer:
@@ -70,14 +64,13 @@ class Checkpointer:
                     "train": ocp.StandardCheckpointHandler(),
                     "frozen": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
         absl_log = logging.getLogger("absl")
-        quiet = _DropMessage("Given directory is read only")  # orbax's warning for read_only=True
         if read_only:
-            absl_log.addFilter(quiet)
+            absl_log.addFilter(_not_read_only_notice)
         try:
             self.manager = ocp.CheckpointManager(self.directory, options=options,
                                                  item_handlers=handlers)
         finally:
-            absl_log.removeFilter(quiet)
+            absl_log.removeFilter(_not_read_only_notice)
 
     def latest_step(self) -> int | None:
         """The last finalised step (None when there is none)."""
