@@ -152,7 +152,7 @@ class Context:
         import jax
 
         from irdepth_jax.config import apply_overrides, get_config
-        from irdepth_jax.train.loop import DataSource, RunError
+        from irdepth_jax.train.loop import DataSource, RunError, resolve_raw_bits
 
         self.args, self.log = args, log
         try:
@@ -166,7 +166,9 @@ class Context:
         self.data_path, self.data_info = self._dataset()
         self.data_fingerprint = self._fingerprint()
         try:
-            self.source = DataSource(self.data_path, args.format)
+            self.source = DataSource(self.data_path, args.format, raw_bits=self.base.data.raw_bits)
+            # every run (and its cache key) gets the resolved bit depth, 'auto' included
+            self.base = resolve_raw_bits(self.base, self.source)
         except RunError as err:
             raise SystemExit(str(err)) from None
         self.data_info["format"] = self.source.format
@@ -269,7 +271,6 @@ class Context:
         self.log(f"[{kind} seed {cfg.seed}] {what} {os.path.relpath(workdir, self.cache)}")
 
     def _stage1_i1(self, cfg) -> dict:
-        from irdepth_jax.evaluate import evaluate_stage1
         from irdepth_jax.train.loop import train_stage1
 
         workdir = self.run_dir("stage1_i1", cfg)
@@ -279,10 +280,9 @@ class Context:
         self._announce("stage1_i1", cfg, workdir, "training Stage I-1 in")
         started = time.time()
         unet = self._train(train_stage1, cfg, self._options(workdir))["unet"]
-        return self._finish(workdir, {"stage1": self._eval(evaluate_stage1, cfg, unet)}, started)
+        return self._finish(workdir, {"stage1": self._eval_stage1(cfg, unet)}, started)
 
     def _stage1(self, cfg) -> dict:
-        from irdepth_jax.evaluate import evaluate_stage1
         from irdepth_jax.train.loop import train_stage1
 
         workdir = self.run_dir("stage1", cfg)
@@ -301,7 +301,7 @@ class Context:
         opts = self._options(workdir)
         opts.resume = True  # continues from the copied I-1 checkpoint
         unet = self._train(train_stage1, cfg, opts)["unet"]
-        return self._finish(workdir, {"stage1": self._eval(evaluate_stage1, cfg, unet)}, started)
+        return self._finish(workdir, {"stage1": self._eval_stage1(cfg, unet)}, started)
 
     def _stage2(self, cfg) -> dict:
         from irdepth_jax.evaluate import evaluate_stage2
@@ -333,13 +333,21 @@ class Context:
         except RunError as err:
             raise SystemExit(str(err)) from None
 
-    def _eval(self, fn, cfg, *models) -> dict:
+    def _eval_stage1(self, cfg, unet) -> dict:
+        """Stage I metrics: reconstruction on the depth test split, mIoU (tables 3 and 6) on the
+        segmentation test split (the paper's independent 600/100/100 split)."""
+        from irdepth_jax.evaluate import evaluate_stage1
+
+        return self._eval(evaluate_stage1, cfg, unet,
+                          seg_frames=self.source.seg_frames(EVAL_SPLIT))
+
+    def _eval(self, fn, cfg, *models, **kw) -> dict:
         from irdepth_jax.train.parallel import DataParallel
 
         dataset, indices = self.source.frames(EVAL_SPLIT)
         if len(indices) == 0:
             raise SystemExit(f"--data {self.data_path}: no {EVAL_SPLIT} frames")
-        return fn(cfg, *models, dataset, indices, DataParallel("single"))
+        return fn(cfg, *models, dataset, indices, DataParallel("single"), **kw)
 
 
 def enable_compilation_cache(path: str | None) -> None:
@@ -372,7 +380,8 @@ def i1_config(cfg, base):
     return dataclasses.replace(cfg, stage1=dataclasses.replace(
         s1, steps_i2=0, epochs_i2=b1.epochs_i2, multitask=b1.multitask, w_rec=b1.w_rec,
         w_seg=b1.w_seg, stage12_learning_rate=b1.stage12_learning_rate,
-        seg_lr_multiplier=b1.seg_lr_multiplier))
+        seg_lr_multiplier=b1.seg_lr_multiplier, seg_labels=b1.seg_labels,
+        synthetic_labeled=b1.synthetic_labeled))
 
 
 # --------------------------------------------------------------------------- provenance

@@ -1,4 +1,4 @@
-"""The `irdepth` command: synth, train, eval, predict, quickstart.
+"""The `irdepth` command: synth, train, eval, predict, export, quickstart.
 
 Every error a user can cause (unknown config key, a directory that is not a dataset, a
 checkpoint of another stage or shape, an 8-bit file given to predict, a workdir that already
@@ -10,11 +10,13 @@ get the traceback instead of the one-line message.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import re
 import sys
 import time
+import warnings
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -59,10 +61,7 @@ def load_config(preset: str, config_file: str | None, overrides: list[str]):
                 raise CliError(f"--config {config_file}: not valid JSON ({err})") from None
             cfg = from_dict(_merge(to_dict(cfg), doc, config_file))
         elif config_file.endswith(".py"):
-            scope: dict = {}
-            with open(config_file) as f:
-                exec(compile(f.read(), config_file, "exec"), scope)
-            made = scope["get_config"]() if "get_config" in scope else scope.get("config")
+            made = _run_config_file(config_file)
             if not isinstance(made, Config):
                 raise CliError(f"--config {config_file}: defines neither get_config() nor "
                                "config returning an irdepth_jax.config.Config")
@@ -70,6 +69,29 @@ def load_config(preset: str, config_file: str | None, overrides: list[str]):
         else:
             raise CliError(f"--config {config_file}: expected a .py or .json file")
     return apply_overrides(cfg, overrides)
+
+
+def _run_config_file(path: str):
+    """What a .py config file makes: its `get_config()`, else its `config` (else None).
+
+    Raises CliError naming the file and line for a syntax error, or for an exception raised
+    while the file runs or get_config() is called.
+    """
+    import traceback
+
+    scope: dict = {}
+    try:
+        with open(path) as f:
+            exec(compile(f.read(), path, "exec"), scope)
+        return scope["get_config"]() if "get_config" in scope else scope.get("config")
+    except SyntaxError as err:
+        raise CliError(f"--config {path}: line {err.lineno}: syntax error ({err.msg})") from None
+    except Exception as err:  # noqa: BLE001 - any error of the user's file, as one line
+        lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == path]
+        where = f"line {lines[-1]}: " if lines else ""
+        text = str(err).strip().splitlines()
+        raise CliError(f"--config {path}: {where}{type(err).__name__}"
+                       + (f": {text[0]}" if text else "")) from None
 
 
 def _merge(base: dict, doc: dict, where: str, prefix: str = "") -> dict:
@@ -93,6 +115,12 @@ def _overrides(items: list[str]) -> list[str]:
     return items
 
 
+def _check_out_dir(path: str | None) -> None:
+    """CliError when --out names an existing file (the outputs go into a directory)."""
+    if path and os.path.exists(path) and not os.path.isdir(path):
+        raise CliError(f"--out {path}: exists and is not a directory")
+
+
 def _parse_size(text: str) -> tuple[int, int]:
     match = re.fullmatch(r"(\d+)[xX](\d+)", text)
     if not match:
@@ -100,13 +128,32 @@ def _parse_size(text: str) -> tuple[int, int]:
     return int(match.group(1)), int(match.group(2))
 
 
-def _run_options(args, workdir: str):
+def _run_options(args, workdir: str, resume: bool):
     from irdepth_jax.train.loop import RunOptions
 
-    return RunOptions(workdir=workdir, resume=args.resume, parallel=args.parallel,
+    return RunOptions(workdir=workdir, resume=resume, parallel=args.parallel,
                       devices=args.devices, steps=args.steps, stop_at=args.stop_at,
                       progress=not args.no_progress,
                       stage1_checkpoint=getattr(args, "stage1_checkpoint", None))
+
+
+@contextlib.contextmanager
+def _one_line_dataset_warnings():
+    """Within the block, each distinct `DatasetWarning` (e.g. MS2 sequences not on disk) is
+    printed once as one line ``irdepth: warning: ...`` on stderr; other warnings as usual."""
+    from irdepth_jax.data.folder import DatasetWarning
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("default", DatasetWarning)
+        show = warnings.showwarning
+
+        def one_line(message, category, *rest, **kwargs):
+            if not issubclass(category, DatasetWarning):
+                return show(message, category, *rest, **kwargs)
+            print(f"irdepth: warning: {message}", file=sys.stderr, flush=True)
+
+        warnings.showwarning = one_line
+        yield
 
 
 # --------------------------------------------------------------------------- commands
@@ -120,33 +167,104 @@ def cmd_synth(args) -> int:
     return 0
 
 
+@contextlib.contextmanager
+def _ctrl_c_while_training():
+    """Ctrl-C within the block, outside a training loop (which has its own handler), e.g. while
+    a stopped phase's last checkpoint is finalised: KeyboardInterrupt as usual, except while a
+    checkpoint is being written (ignored with a note, so that it completes: a stop is then under
+    way, or Ctrl-C can be pressed again) and once the run is aborting.
+
+    Yields a dict whose 'aborting' is set when this handler raises, or by the caller that caught
+    a KeyboardInterrupt: from then on Ctrl-C is ignored while the aborted run is torn down
+    (its clean-up, its loader threads), so that it still ends with one line.
+    """
+    import signal
+
+    from irdepth_jax.train.loop import writing_checkpoint
+
+    state = {"aborting": False, "noted": False}
+
+    def handler(signum, frame):
+        if state["aborting"]:
+            return
+        if writing_checkpoint(frame):
+            if not state["noted"]:
+                print("irdepth: Ctrl-C while a checkpoint is written: ignored so that it "
+                      "completes (press again to stop)", file=sys.stderr, flush=True)
+            state["noted"] = True
+            return
+        state["aborting"] = True
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGINT, handler)
+    except ValueError:  # not the main thread: Ctrl-C is not ours to handle
+        previous = None
+    try:
+        yield state
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGINT, previous)
+
+
 def cmd_train(args) -> int:
-    from irdepth_jax.train.loop import DataSource, train_stage1, train_stage2
+    """Trains a stage in --workdir, holding the workdir's lock (`train.workdir_lock`): a run
+    that fails before recording anything leaves no trace; Ctrl-C names the last checkpoint."""
+    import jax
+
+    from irdepth_jax.train.loop import DataSource, Interrupted, train_stage1, train_stage2
+    from irdepth_jax.train.workdir_lock import claim_workdir, holds_run, last_checkpoint
 
     cfg = load_config(args.preset, args.config, _overrides(args.overrides))
     if args.stage == "stage1" and args.stage1_checkpoint:
         raise CliError("--stage1-checkpoint is for train stage2")
-    source = DataSource(args.data, args.format)
-    opts = _run_options(args, args.workdir)
+    source = DataSource(args.data, args.format, strict=args.strict, raw_bits=cfg.data.raw_bits)
     start = time.perf_counter()
+    # one process takes the lock (a multi-host run's processes may share the directory)
+    claim = claim_workdir(args.workdir) if jax.process_index() == 0 else contextlib.nullcontext()
+    interrupted = False
+    with _ctrl_c_while_training() as ctrl_c:
+        try:
+            with claim:
+                held = holds_run(args.workdir)
+                if args.resume and not held:
+                    raise CliError(f"--resume: workdir {args.workdir} holds no run to continue; "
+                                   "pass --resume-or-start to start one there")
+                opts = _run_options(args, args.workdir,
+                                    held if args.resume_or_start else args.resume)
+                if args.stage == "stage1":
+                    result = train_stage1(cfg, source, opts)
+                else:
+                    train_stage2(cfg, source, opts)
+        except KeyboardInterrupt:  # the run's frames (loader threads) end with this block
+            ctrl_c["aborting"] = interrupted = True
+    if interrupted:
+        last = last_checkpoint(args.workdir)
+        raise Interrupted(f"interrupted; the last checkpoint is {last[0]} step {last[1]}, "
+                          "continue with --resume" if last else
+                          "interrupted before the first checkpoint; nothing to continue")
     if args.stage == "stage1":
-        result = train_stage1(cfg, source, opts)
         print(f"stage1 done ({', '.join(f'{k}: {v} steps' for k, v in result['steps'].items())}"
               f", {time.perf_counter() - start:.0f} s); checkpoints in {args.workdir}/checkpoints")
     else:
-        train_stage2(cfg, source, opts)
         print(f"stage2 done ({time.perf_counter() - start:.0f} s); checkpoints in "
               f"{args.workdir}/checkpoints/stage2")
     return 0
 
 
 def cmd_eval(args) -> int:
-    from irdepth_jax.evaluate import evaluate_run
+    from irdepth_jax.evaluate import evaluate_run, nonfinite_warning
 
+    _check_out_dir(args.out)
     path = args.checkpoint or args.workdir
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
-                          overrides=_overrides(args.overrides), stride=args.stride)
+                          overrides=_overrides(args.overrides), stride=args.stride,
+                          align=None if args.align == "none" else args.align,
+                          strict=args.strict)
     print(result["markdown"])
+    warning = nonfinite_warning(result)
+    if warning:
+        print(f"irdepth: WARNING: {warning}", file=sys.stderr)
     out = args.out or path
     print(f"tables written to {out}/eval_{args.split}.md and .json")
     return 0
@@ -155,8 +273,25 @@ def cmd_eval(args) -> int:
 def cmd_predict(args) -> int:
     from irdepth_jax.evaluate import predict_files
 
-    written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides))
+    _check_out_dir(args.out)
+    written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
+                            raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict)
     print(f"wrote {len(written)} files to {args.out}")
+    return 0
+
+
+def cmd_export(args) -> int:
+    """Writes the Stage II model as one ONNX / StableHLO file (+ FILE.json), checked against
+    the JAX pipeline (`irdepth_jax.export`)."""
+    from irdepth_jax.export import export_model, metadata_path
+
+    meta = export_model(args.checkpoint, args.format, args.height, args.width, args.batch,
+                        args.out, sample=args.sample)
+    check = meta["check"]
+    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on {check['frames']} "
+          f"{'synthetic' if args.sample is None else 'sample'} frames (tolerance "
+          f"{check['tolerance']:.3g} m)")
+    print(f"wrote {args.out} and {metadata_path(args.out)}")
     return 0
 
 
@@ -165,7 +300,8 @@ def cmd_quickstart(args) -> int:
     from irdepth_jax.data.folder import write_synthetic_dataset
     from irdepth_jax.evaluate import evaluate_run, evaluate_stage1, evaluate_stage2
     from irdepth_jax.train.loop import (DataSource, RunOptions, init_depth, init_unet,
-                                        make_parallel, train_stage1, train_stage2)
+                                        make_parallel, resolve_raw_bits, train_stage1,
+                                        train_stage2)
 
     work = args.workdir
     if os.path.isdir(work) and os.listdir(work):
@@ -178,7 +314,8 @@ def cmd_quickstart(args) -> int:
           f"{d.height}x{d.width} -> {data}")
     write_synthetic_dataset(data, d.num_frames, d.num_labeled, d.height, d.width, seed=cfg.seed,
                             progress=not args.no_progress)
-    source = DataSource(data)
+    source = DataSource(data, raw_bits=cfg.data.raw_bits)
+    cfg = resolve_raw_bits(cfg, source)  # the evaluations below use it too
     common = dict(devices=args.devices, progress=not args.no_progress)
     print("[2/4] Stage I: I-1 reconstruction pre-training, I-2 soft multi-task")
     s1 = train_stage1(cfg, source, RunOptions(os.path.join(work, "stage1"), **common))
@@ -188,8 +325,9 @@ def cmd_quickstart(args) -> int:
     print("[4/4] evaluation on the test split")
     dp = make_parallel(RunOptions(work, **common), cfg.stage2.batch_size)
     dataset, test = source.frames("test")
-    before1 = evaluate_stage1(cfg, init_unet(cfg), dataset, test, dp)["all"]
-    before2 = evaluate_stage2(cfg, s1["unet"], init_depth(cfg), dataset, test, dp)["all"]
+    before1 = evaluate_stage1(cfg, init_unet(cfg), dataset, test, dp,
+                              seg_frames=source.seg_frames("test"))["all"]
+    before2 = evaluate_stage2(cfg, s1["unet"], init_depth(cfg)[0], dataset, test, dp)["all"]
     result = evaluate_run(os.path.join(work, "stage2"), data, "test", dp=dp)
     after1, after2 = result["stage1"]["all"], result["stage2"]["all"]
     print(result["markdown"])
@@ -216,6 +354,11 @@ def build_parser() -> argparse.ArgumentParser:
     def progress_flag(p):
         p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
+    def strict_flag(p):
+        p.add_argument("--strict", action="store_true",
+                       help="MS2: fail when a sequence named by a split list is not on disk "
+                            "(default: read the sequences present, warn once per split)")
+
     def compile_cache_flag(p):
         p.add_argument("--no-compile-cache", action="store_true",
                        help="do not use the persistent XLA compilation cache")
@@ -237,9 +380,14 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser(
         "train", help="train Stage I (I-1 then I-2) or Stage II",
         description="Train one stage into --workdir (config.json, metrics.jsonl, tb/, "
-                    "checkpoints/). stage1 runs I-1 (reconstruction pre-training, all frames) "
-                    "then I-2 (soft multi-task, labelled frames); stage2 fine-tunes Depth "
-                    "Anything V2 on the frozen Stage I model's HSV images (--stage1-checkpoint).",
+                    "checkpoints/). stage1 runs I-1 (reconstruction pre-training on the depth "
+                    "train split; stage1.i1_frames=all for every frame, as the paper, at the "
+                    "cost of test frames in I-1) then I-2 (soft multi-task on the labelled "
+                    "frames of seg_split train; data without labels needs "
+                    "stage1.seg_labels=synthetic|PATH|none); stage2 fine-tunes Depth Anything "
+                    "V2 on the frozen Stage I model's HSV images (--stage1-checkpoint). Each "
+                    "stage prints what it is built from (irdepth: STAGE: ... lines, also "
+                    "logged in metrics.jsonl).",
         epilog=EPILOG_OVERRIDES)
     p.add_argument("stage", choices=("stage1", "stage2"), help="which stage")
     p.add_argument("--preset", default="tiny", choices=("tiny", "small", "paper"),
@@ -249,9 +397,14 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="dataset directory (folder format or MS2)")
     p.add_argument("--format", default="auto", choices=("auto", "folder", "ms2"),
                    help="dataset format (default: auto-detect)")
+    strict_flag(p)
     p.add_argument("--workdir", required=True, help="run directory")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the run in --workdir from its last checkpoint")
+    resume = p.add_mutually_exclusive_group()
+    resume.add_argument("--resume", action="store_true",
+                        help="continue the run in --workdir from its last checkpoint (an error "
+                             "when it holds none)")
+    resume.add_argument("--resume-or-start", action="store_true",
+                        help="continue the run in --workdir if it holds one, else start it")
     p.add_argument("--stage1-checkpoint", metavar="DIR",
                    help="stage2: the Stage I workdir (or its checkpoint directory)")
     p.add_argument("--devices", type=int, help="number of devices (default: all)")
@@ -280,26 +433,75 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", default="auto", choices=("auto", "folder", "ms2"),
                    help="dataset format (default: auto-detect)")
     p.add_argument("--split", default="test", help="split to evaluate (default test)")
+    strict_flag(p)
     p.add_argument("--stride", type=int, default=1, metavar="N",
-                   help="evaluate every N-th frame (MS2: of each sequence; the MS2 test "
-                        "protocol is --stride 10; default 1: all frames)")
+                   help="evaluate frames[0:-1:N] of the split's frame list (all sequences "
+                        "concatenated), as the official MS2 loader does; the MS2 test protocol "
+                        "is --stride 10 (default 1: every frame)")
+    p.add_argument("--align", default="none", choices=("none", "median", "scale_shift"),
+                   help="per-image alignment of the predicted depth before the metrics: "
+                        "median scaling or least-squares scale and shift (default none); "
+                        "predictions are then clamped to [data.min_depth, data.max_depth]")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
     compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                    help="config overrides (e.g. data.max_depth=50)")
     p.set_defaults(func=cmd_eval)
 
-    p = sub.add_parser("predict", help="depth maps from raw 14-bit frames",
-                       description="Run a trained model on raw 14-bit frames (16-bit PNG / TIFF "
-                                   "or .npy files, or folders of them). Writes NAME_depth.png "
-                                   "(16-bit, metres x 256), NAME_depth_color.png and the "
-                                   "pseudo-RGB / HSV images.")
+    p = sub.add_parser("predict", help="depth maps from raw thermal frames",
+                       description="Run a trained model on raw thermal frames: 16-bit PNG, "
+                                   "16-bit TIFF (multi-page: one frame per page), .npy ((H, W) "
+                                   "or (N, H, W)), FLIR .fff / .seq (needs the flir extra: "
+                                   "pip install 'irdepth_jax[flir]'), or folders of them. "
+                                   "Writes NAME_depth.png (16-bit, metres x 256), "
+                                   "NAME_depth_color.png and the pseudo-RGB / HSV images "
+                                   "(a stack's frames are NAME_p0000, NAME_p0001, ...). "
+                                   "Each file is written whole or not at all: a failed write "
+                                   "(e.g. a full disk) stops with an error naming the file. "
+                                   "A checkpoint with NaN / inf weights is refused, and a "
+                                   "frame whose prediction is NaN / inf stops the run with an "
+                                   "error naming its input file before its files are written "
+                                   "(a NaN depth is never written as 0, 'no depth'); the "
+                                   "frames before it are complete.")
     p.add_argument("--checkpoint", required=True,
                    help="a Stage II (or Stage I) workdir or checkpoint directory")
     p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--raw-bits", type=int, choices=(14, 16),
+                   help="bit depth of the frames' counts (default: the model's data.raw_bits); "
+                        "a count over it is an error")
+    p.add_argument("--glob", metavar="PATTERN",
+                   help="in folders, read the files matching PATTERN, e.g. '*_thr.png' "
+                        "(default: every .png .tif .tiff .npy .fff .seq file)")
+    p.add_argument("--strict", action="store_true",
+                   help="fail on an 8-bit or colour file in a folder (default: skip it, named "
+                        "in one summary line)")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
     compile_cache_flag(p)
     p.set_defaults(func=cmd_predict, overrides=[])
+
+    p = sub.add_parser("export", help="a Stage II model as one ONNX or StableHLO file",
+                       description="Export raw (N, H, W) uint16 counts -> depth (N, H, W) "
+                                   "float32 metres (the whole HSV pipeline, variables as "
+                                   "constants) for one fixed input shape, and FILE.json beside "
+                                   "it (shapes, dtypes, raw bit depth, max depth, class names, "
+                                   "config). The artifact is checked against the JAX pipeline "
+                                   "on sample frames and refused when they differ by more than "
+                                   "1e-4 x max depth. onnx needs pip install "
+                                   "'irdepth_jax[export]'.")
+    p.add_argument("--checkpoint", required=True,
+                   help="a Stage II workdir or checkpoint directory (stage2.preprocessing=hsv)")
+    p.add_argument("--format", required=True, choices=("onnx", "stablehlo"),
+                   help="onnx (jax2onnx, runs in onnxruntime) or stablehlo "
+                        "(jax.export, runs with JAX alone)")
+    p.add_argument("--height", type=int, required=True, help="frame height of the input")
+    p.add_argument("--width", type=int, required=True, help="frame width of the input")
+    p.add_argument("--batch", type=int, default=1, help="frames per call (default 1)")
+    p.add_argument("--out", required=True, help="the artifact's file (FILE.json goes beside it)")
+    p.add_argument("--sample", metavar="FILE",
+                   help="raw frame file (HxW) for the export-time check (default: rendered "
+                        "synthetic frames)")
+    compile_cache_flag(p)
+    p.set_defaults(func=cmd_export)
 
     p = sub.add_parser("quickstart", help="synth -> Stage I -> Stage II -> eval on a tiny model",
                        description="The whole pipeline on synthetic data with the tiny preset: "
@@ -335,7 +537,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         _setup_jax(args)
-        return args.func(args)
+        with _one_line_dataset_warnings():
+            return args.func(args)
     except Interrupted as stop:
         print(f"irdepth: {stop}", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -51,6 +51,17 @@ class DepthConfig:
     input_height: int = 252  # network input, multiples of 14
     input_width: int = 322
     checkpoint: str | None = None  # released .pth / .safetensors to start Stage II from
+    # What `checkpoint` contributes: 'auto' = the backbone always, the head only when the file's
+    # head kind (metric / relative) is this config's (a released metric checkpoint is used whole;
+    # official metric fine-tuning starts from a relative one, backbone only); 'true' = the head
+    # too (refused when its kind differs); 'false' = the backbone only.
+    load_head: str = "auto"
+    # Head kind of `checkpoint`: 'auto' = what the file says (a transformers config.json's
+    # depth_estimation_type; a file name with metric / hypersim (max_depth 20) / vkitti (80) is
+    # metric, the official depth_anything_v2_vit{s,b,l,g}.pth relative; the metric-training
+    # {'model': {'module.*'}} form metric; anything else is refused as ambiguous), or 'metric' /
+    # 'relative' to state it.
+    checkpoint_kind: str = "auto"
     dtype: str = "float32"  # compute dtype: float32 | bfloat16 (params stay float32)
     remat: bool = False  # rematerialise transformer blocks to save memory
 
@@ -68,6 +79,10 @@ class DataConfig:
     augment: bool = True
     min_depth: float = 1e-3
     max_depth: float = 80.0
+    # Bit depth of the raw counts: 14 (most LWIR cores), 16 (radiometric cameras that use the
+    # full range) or 'auto' (16 when a training frame exceeds 14 bits, else 14; resolved once at
+    # the start of training and stored resolved in the run's config, so predict uses the same).
+    raw_bits: int | str = 14
 
 
 @dataclass(frozen=True)
@@ -85,6 +100,16 @@ class Stage1Config:
     epochs_i2: int = 50
     steps_i1: int | None = None  # overrides epochs when set
     steps_i2: int | None = None
+    # Frames of I-1 (self-supervised, no labels): 'train' (default: the depth train split, so the
+    # val / test frames of tables 2 and 5 stay unseen) or 'all' (the paper's "full dataset").
+    i1_frames: str = "train"
+    # Segmentation labels of I-2: 'dataset' (its seg_split == train frames), 'synthetic'
+    # (rendered labelled scenes at the data's frame size, added to the dataset's frames: for data
+    # without labels, e.g. MS2), a folder-format dataset path (its seg_split == train frames,
+    # added likewise), or 'none' (I-2 without segmentation: Stage II must then use
+    # stage2.hue_mode=constant and stage2.sky_loss=false). No labels at all is an error.
+    seg_labels: str = "dataset"
+    synthetic_labeled: int = 200  # frames rendered for seg_labels=synthetic
     recon_loss: str = "l1"  # l1 | l2
     w_rec: float = 0.1  # I-2 weight of the reconstruction loss
     w_seg: float = 1.0  # I-2 weight of the cross-entropy
@@ -113,8 +138,11 @@ class Stage2Config:
     sky_loss: bool = True
     lambda_sky: float = 0.1
     sky_loss_kind: str = "l1"  # l1 | l2 of the relative error pred / ref_depth - 1
-    sky_ref_factor: float = 0.99  # sky target depth = factor x the largest training depth
-    hue_mode: str = "soft"  # soft (circular mean of class hues) | argmax
+    # sky target depth = factor x min(largest training depth, data.max_depth, depth.max_depth)
+    sky_ref_factor: float = 0.99
+    # soft (circular mean of class hues) | argmax | constant (hue 0: no segmentation in the
+    # input, for a Stage I whose segmentation branch was not trained)
+    hue_mode: str = "soft"
 
 
 @dataclass(frozen=True)
@@ -185,27 +213,38 @@ def get_config(preset: str = "paper") -> Config:
         raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}") from None
 
 
-def _parse_value(text: str, current: Any, key: str) -> Any:
-    """Parses an override value to the type of the field it replaces."""
+_TYPE_EXAMPLES = {"bool": False, "int": 0, "float": 0.0, "str": ""}
+"""A value of each annotated type, standing in for an optional field's current None."""
+
+
+def _parse_value(text: str, current: Any, key: str, types: tuple[str, ...] = ()) -> Any:
+    """Parses an override value to the type of the field it replaces: the type of its current
+    value, or, while that is None, the first type of its annotation `types` (e.g. ('int',
+    'None') for ``int | None``)."""
     lowered = text.strip().lower()
     if lowered in ("none", "null"):
         return None
+    if current is None:
+        current = next((_TYPE_EXAMPLES[t] for t in types if t in _TYPE_EXAMPLES), None)
+    or_none = " (or none)" if "None" in types else ""
     if isinstance(current, bool):
         if lowered in ("1", "true", "yes", "on"):
             return True
         if lowered in ("0", "false", "no", "off"):
             return False
-        raise ValueError(f"config key {key!r} expects true/false, got {text!r}")
+        raise ValueError(f"config key {key!r} expects true/false{or_none}, got {text!r}")
     if isinstance(current, int) and not isinstance(current, bool):
         try:
             return int(text)
         except ValueError:
-            raise ValueError(f"config key {key!r} expects an integer, got {text!r}") from None
+            raise ValueError(f"config key {key!r} expects an integer{or_none}, got {text!r}"
+                             ) from None
     if isinstance(current, float):
         try:
             return float(text)
         except ValueError:
-            raise ValueError(f"config key {key!r} expects a number, got {text!r}") from None
+            raise ValueError(f"config key {key!r} expects a number{or_none}, got {text!r}"
+                             ) from None
     if isinstance(current, tuple):
         try:
             value = ast.literal_eval(text)
@@ -257,7 +296,17 @@ def _replace_field(obj: Any, name: str, text: str, key: str) -> Any:
     current = _get_field(obj, name, key)
     if dataclasses.is_dataclass(current):
         raise ValueError(f"config key {key!r} is a section; set one of its fields")
-    return dataclasses.replace(obj, **{name: _parse_value(text, current, key)})
+    types = str({f.name: f.type for f in dataclasses.fields(obj)}[name]).split(" | ")
+    try:
+        value = _parse_value(text, current, key, tuple(types))
+    except ValueError:
+        # a field annotated `int | str` (e.g. data.raw_bits = 14 | 16 | 'auto') takes words too
+        if "str" not in types:
+            raise
+        value = text.strip()
+    if value is None and "None" not in types:  # 'none' is a word for a plain str field
+        value = text.strip()
+    return dataclasses.replace(obj, **{name: value})
 
 
 def to_dict(cfg: Config) -> dict:

@@ -33,9 +33,9 @@ def _masked_mean(x: jnp.ndarray, mask: jnp.ndarray, axis=None) -> jnp.ndarray:
 
 
 def _safe_sqrt(x: jnp.ndarray) -> jnp.ndarray:
-    """sqrt(x) for x > 0 else 0, with a finite (zero) gradient where x <= 0."""
-    positive = x > 0
-    return jnp.where(positive, jnp.sqrt(jnp.where(positive, x, 1.0)), 0.0)
+    """sqrt(x) for x > 0, 0 for x <= 0 (with a finite, zero gradient there), NaN for NaN."""
+    nonpositive = x <= 0
+    return jnp.where(nonpositive, 0.0, jnp.sqrt(jnp.where(nonpositive, 1.0, x)))
 
 
 def silog_loss(
@@ -59,7 +59,9 @@ def silog_loss(
       lambd: variance weight lambda in [0, 1].
       eps: lower clamp of pred and target inside the logs.
     Returns:
-      float32 scalar; 0 (zero gradient) when the mask is empty.
+      float32 scalar; 0 (zero gradient) when the mask is empty; NaN when `pred` is NaN or
+      +-inf on any pixel of the mask (the eps clamp would otherwise turn -inf into a finite
+      loss; the mask should come from the ground truth only, never from `pred`).
     """
     pred = jnp.asarray(pred, jnp.float32)
     target = jnp.asarray(target, jnp.float32)
@@ -69,7 +71,8 @@ def silog_loss(
     d = jnp.log(safe_target) - jnp.log(safe_pred)
     mean_d = _masked_mean(d, mask)
     mean_d2 = _masked_mean(d * d, mask)
-    return _safe_sqrt(mean_d2 - lambd * mean_d * mean_d)
+    nonfinite = jnp.any(mask & ~jnp.isfinite(pred))
+    return jnp.where(nonfinite, jnp.nan, _safe_sqrt(mean_d2 - lambd * mean_d * mean_d))
 
 
 def _pointwise_error(diff: jnp.ndarray, kind: str) -> jnp.ndarray:

@@ -11,6 +11,10 @@ clamp and per-image alignment:
   least squares on depth, min sum (s * pred + t - gt)^2 (for a relative model that predicts
   disparity, invert it to depth first);
 * then pred is clamped to [min_depth, max_depth];
+* a prediction that is NaN or +-inf on a valid pixel makes every metric of its image NaN (the
+  clamp would otherwise turn +-inf into max_depth / min_depth, and comparisons with NaN into
+  d_k = 0), so it also makes every mean the image enters NaN; non-finite predicted pixels are
+  counted ('nonfinite') over the whole image, valid or not;
 * thresh = max(gt / p, p / gt); d_k = mean(thresh < 1.25^k); abs_rel = mean(|p - gt| / gt);
   sq_rel = mean((p - gt)^2 / gt); rmse = sqrt(mean((p - gt)^2));
   rmse_log = sqrt(mean((ln p - ln gt)^2)); log10 = mean(|log10 p - log10 gt|);
@@ -81,6 +85,7 @@ def _align(pred: jnp.ndarray, gt: jnp.ndarray, valid: jnp.ndarray, align: str | 
 @functools.partial(jax.jit, static_argnames=("align",))
 def _per_image(pred, gt, mask, align, min_depth, max_depth):
     valid = mask & (gt >= min_depth) & (gt <= max_depth)
+    nonfinite = ~jnp.isfinite(pred)
     pred = jnp.clip(_align(pred, gt, valid, align), min_depth, max_depth)
     # Safe values off the mask so no log / divide sees a zero (gradients stay finite too).
     p = jnp.where(valid, pred, 1.0)
@@ -107,6 +112,9 @@ def _per_image(pred, gt, mask, align, min_depth, max_depth):
             p, g, valid
         ),
     }
+    broken = jnp.any(valid & nonfinite, axis=(1, 2))
+    out = {k: jnp.where(broken, jnp.nan, v) for k, v in out.items()}
+    out["nonfinite"] = nonfinite.sum(axis=(1, 2))
     out["used"] = count >= MIN_VALID_PIXELS
     return out
 
@@ -139,8 +147,10 @@ def per_image_depth_metrics(
       align: None, 'median' or 'scale_shift'.
       min_depth, max_depth: valid gt range and prediction clamp.
     Returns:
-      dict of (B,) float32 arrays, one per name in `DEPTH_METRICS`, plus 'used' (B,) bool:
-      whether the image has >= 10 valid pixels (the metrics of unused images are meaningless).
+      dict of (B,) float32 arrays, one per name in `DEPTH_METRICS` (NaN for an image whose
+      prediction is non-finite on a valid pixel), plus 'used' (B,) bool: whether the image has
+      >= 10 valid pixels (the metrics of unused images are meaningless), and 'nonfinite' (B,)
+      int32: the image's pixels where pred is NaN or +-inf (valid or not).
     """
     if align not in _ALIGNMENTS:
         raise ValueError(f"depth metrics: `align` must be one of {_ALIGNMENTS}, got {align!r}")
@@ -164,8 +174,10 @@ def depth_metrics(
 
     Args: as `per_image_depth_metrics`.
     Returns:
-      dict: each name in `DEPTH_METRICS` -> float (NaN when no image is usable) and
-      'count' -> int, the number of images averaged.
+      dict: each name in `DEPTH_METRICS` -> float (NaN when no image is usable or a usable one
+      has a non-finite prediction on a valid pixel), 'count' -> int, the number of images
+      averaged, and 'nonfinite_pixels' / 'nonfinite_images' -> int (see
+      `DepthMetricAccumulator.result`).
     """
     acc = DepthMetricAccumulator(align=align, min_depth=min_depth, max_depth=max_depth)
     acc.update(pred, gt, mask)
@@ -190,6 +202,7 @@ class DepthMetricAccumulator:
         self.align, self.min_depth, self.max_depth = align, min_depth, max_depth
         self._sums: dict[str, np.ndarray] = {}
         self._counts: dict[str, int] = {}
+        self._nonfinite: dict[str, np.ndarray] = {}  # group -> [pixels, images]
 
     def update(self, pred, gt, mask=None, conditions: str | Sequence[str] | None = None) -> None:
         """Adds a batch.
@@ -203,6 +216,7 @@ class DepthMetricAccumulator:
         )
         values = np.stack([np.asarray(per_image[k], np.float64) for k in DEPTH_METRICS], axis=1)
         used = np.asarray(per_image["used"])
+        nonfinite = np.asarray(per_image["nonfinite"], np.int64)
         batch = values.shape[0]
         if conditions is None:
             names: Iterable[str | None] = [None] * batch
@@ -214,22 +228,28 @@ class DepthMetricAccumulator:
                 raise ValueError(
                     f"DepthMetricAccumulator.update: {len(names)} conditions for {batch} images"
                 )
-        for row, is_used, name in zip(values, used, names):
-            if not is_used:
-                continue
+        for row, is_used, bad, name in zip(values, used, nonfinite, names):
             for group in ("all",) if name is None else ("all", str(name)):
-                self._sums[group] = self._sums.get(group, 0.0) + row
-                self._counts[group] = self._counts.get(group, 0) + 1
+                if bad:
+                    self._nonfinite[group] = self._nonfinite.get(group, 0) + np.array([bad, 1])
+                if is_used:
+                    self._sums[group] = self._sums.get(group, 0.0) + row
+                    self._counts[group] = self._counts.get(group, 0) + 1
 
     def result(self) -> dict[str, dict[str, float]]:
-        """{'all': metrics, condition: metrics, ...}; each has the `DEPTH_METRICS` means and
-        'count'. 'all' is present even when empty (NaN metrics, count 0)."""
+        """{'all': metrics, condition: metrics, ...}; each has the `DEPTH_METRICS` means,
+        'count', and 'nonfinite_pixels' / 'nonfinite_images': the predicted pixels that were
+        NaN or +-inf and the images holding any, over every image seen (used or not). An image
+        with a non-finite prediction on a valid pixel makes the group's means NaN. 'all' is
+        present even when empty (NaN metrics, count 0)."""
         out = {}
-        for group in ["all"] + sorted(g for g in self._counts if g != "all"):
+        groups = (set(self._counts) | set(self._nonfinite)) - {"all"}
+        for group in ["all"] + sorted(groups):
             n = self._counts.get(group, 0)
             means = self._sums[group] / n if n else np.full(len(DEPTH_METRICS), np.nan)
             out[group] = {k: float(v) for k, v in zip(DEPTH_METRICS, means)}
-            out[group]["count"] = n
+            pixels, images = self._nonfinite.get(group, (0, 0))
+            out[group].update(count=n, nonfinite_pixels=int(pixels), nonfinite_images=int(images))
         return out
 
 

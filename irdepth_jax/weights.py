@@ -9,6 +9,15 @@ Source layouts:
   * the official key layout in a .safetensors file (what `to_official_state_dict` + safetensors'
     `save_file` write; no torch needed).
 
+Relative and metric heads have the same tensors (the relative head ends in ReLU, the metric one
+in sigmoid x max_depth), so the head type is read from what surrounds them: a transformers
+`config.json` (`depth_estimation_type`, `max_depth`; absent type = relative, as in transformers),
+the official file names (DepthAnything/Depth-Anything-V2 README:
+`depth_anything_v2_vit{s,b,l,g}.pth` are relative; its metric_depth/README:
+`depth_anything_v2_metric_{hypersim,vkitti}_vit{s,b,l}.pth`, max_depth 20 m for Hypersim, 80 m
+for Virtual KITTI), or the metric-training form. Anything else is ambiguous and needs the kind
+stated (`kind=`, `depth.checkpoint_kind`).
+
 Transformers keys are first renamed to the official layout (q/k/v fused into qkv, refinenet order
 reversed), then every official key maps onto our tree by turning `name.N` into `name_N`:
 conv weights OIHW -> HWIO, ConvTranspose (in, out, kh, kw) -> (kh, kw, in, out) with both spatial
@@ -38,6 +47,9 @@ from irdepth_jax.models.depth_anything import (
     depth_anything_config,
 )
 
+_RELATIVE_NAME = re.compile(r"^depth_anything_v2_vit[sblg]\.pth$")
+_METRIC_NAME_MAX_DEPTH = {"hypersim": 20.0, "vkitti": 80.0}  # metric_depth/README.md, dist_train.sh
+CHECKPOINT_KINDS = ("auto", "metric", "relative")
 _UNUSED = re.compile(r"^(pretrained\.mask_token|depth_head\.scratch\.refinenet4\.resConfUnit1\..*)$")
 _CONV_TRANSPOSE = re.compile(r"^depth_head\.resize_layers\.[01]\.weight$")
 
@@ -95,11 +107,33 @@ def _read_pth(path: str) -> tuple[dict[str, np.ndarray], bool]:
             f"reading the PyTorch checkpoint {path!r} needs torch: pip install 'irdepth_jax[torch]' "
             "(or convert it once and use load_params)"
         ) from err
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch raises pickle, zip and runtime errors for a foreign file
+        reason = next(iter(str(err).strip().splitlines()), type(err).__name__)
+        raise ValueError(f"{path}: not a PyTorch checkpoint ({reason})") from None
     wrapped = isinstance(state, Mapping) and "model" in state and isinstance(state["model"], Mapping)
     if wrapped:
         state = {k.removeprefix("module."): v for k, v in state["model"].items()}
+    if not isinstance(state, Mapping):
+        raise ValueError(f"{path}: holds a {type(state).__name__}, not a state dict")
     return {k: _to_numpy(v) for k, v in state.items()}, wrapped
+
+
+def _stated_head(path: str, hf_config: dict | None,
+                 wrapped: bool) -> tuple[str | None, float | None]:
+    """What a checkpoint's surroundings say of its head: (kind 'metric' / 'relative' or None when
+    nothing says, max_depth or None) from a transformers config.json, the metric-training form or
+    the official file name (see the module docstring)."""
+    name = os.path.basename(path).lower()
+    if hf_config is not None:
+        if hf_config.get("depth_estimation_type", "relative") == "metric":
+            return "metric", hf_config.get("max_depth")
+        return "relative", None
+    dataset = next((d for d in _METRIC_NAME_MAX_DEPTH if d in name), None)
+    if wrapped or dataset or "metric" in name:
+        return "metric", _METRIC_NAME_MAX_DEPTH.get(dataset)
+    return ("relative" if _RELATIVE_NAME.match(name) else None), None
 
 
 def _hf_to_official(state: Mapping[str, np.ndarray]) -> tuple[dict[str, np.ndarray], list[str]]:
@@ -224,48 +258,60 @@ def convert_official(state: Mapping[str, np.ndarray], cfg: DepthAnythingConfig) 
 def load_depth_anything(
     path: str | os.PathLike,
     encoder: str | DepthAnythingConfig | None = None,
-    metric: bool | None = None,
+    kind: str = "auto",
     max_depth: float | None = None,
 ) -> tuple[DepthAnythingConfig, dict]:
     """Load released Depth Anything V2 weights: (cfg, params) for `DepthAnythingV2(cfg).apply`.
 
     path: an official .pth / .pt file, a .safetensors file (transformers or official key layout),
-    or a directory holding `model.safetensors`. encoder: a preset name, a full config, or None to infer it from the
-    shapes (encoder from embed_dim and depth, head widths from the head's weights; taps from a
-    transformers `config.json` when present). metric / max_depth: head type; by default metric
-    for the metric-training ('model' + 'module.') form or a transformers config saying so,
-    relative otherwise; max_depth from the transformers config, else the config default (80 m).
-    Returns float32 params; raises ValueError listing every mismatched key.
+    or a directory holding `model.safetensors`. encoder: a preset name, a full config, or None to
+    infer it from the shapes (encoder from embed_dim and depth, head widths from the head's
+    weights; taps from a transformers `config.json` when present). kind: the head type, 'auto'
+    (what the file states: a transformers config.json, the metric-training ('model' + 'module.')
+    form, an official file name; see the module docstring), 'metric' or 'relative'. max_depth:
+    the metric head's range when the file does not state it (else the file's); None: the
+    config's (80 m for a preset). cfg.metric / cfg.max_depth say what was read.
+    Returns float32 params; raises ValueError (first line names the file) when the kind is
+    ambiguous, the file is not a checkpoint, or keys mismatch (every one listed).
     """
+    if kind not in CHECKPOINT_KINDS:
+        raise ValueError(f"checkpoint kind {kind!r} (depth.checkpoint_kind / kind=): choose "
+                         f"{', '.join(CHECKPOINT_KINDS)}")
     path = os.fspath(path)
     if os.path.isdir(path):
         path = os.path.join(path, "model.safetensors")
     if not os.path.isfile(path):
         raise FileNotFoundError(f"no checkpoint at {path!r}")
-    hf_config: dict = {}
+    hf_config: dict | None = None
+    wrapped = False
     if path.endswith(".safetensors"):
         from safetensors.numpy import load_file
 
-        state = load_file(path)
+        try:
+            state = load_file(path)
+        except Exception as err:  # SafetensorError for a foreign file
+            raise ValueError(f"{path}: not a safetensors file ({err})") from None
         official = any(k.startswith(("pretrained.", "depth_head.")) for k in state)
         state, unmatched = (dict(state), []) if official else _hf_to_official(state)
         config_json = os.path.join(os.path.dirname(path), "config.json")
         if os.path.isfile(config_json):
             with open(config_json) as f:
                 hf_config = json.load(f)
-        default_metric = hf_config.get("depth_estimation_type") == "metric"
     else:
-        state, default_metric = _read_pth(path)
+        state, wrapped = _read_pth(path)
         unmatched = []
     if unmatched:
         raise ValueError(f"{path}: keys not in the Depth Anything V2 layout ({len(unmatched)}): {sorted(unmatched)}")
-    out_indices = hf_config.get("backbone_config", {}).get("out_indices")
+    stated_kind, stated_depth = _stated_head(path, hf_config, wrapped)
+    if kind == "auto" and stated_kind is None:
+        raise ValueError(f"{path}: cannot tell whether its head is metric or relative (not an "
+                         "official file name, no transformers config.json): set "
+                         "depth.checkpoint_kind (kind=) to metric or relative")
+    metric = (stated_kind if kind == "auto" else kind) == "metric"
+    out_indices = (hf_config or {}).get("backbone_config", {}).get("out_indices")
     cfg = _infer_config(state, encoder, taps=[i - 1 for i in out_indices] if out_indices else None)
-    if metric is None:
-        metric = encoder.metric if isinstance(encoder, DepthAnythingConfig) else default_metric
-    if max_depth is None:
-        max_depth = hf_config.get("max_depth") if metric and hf_config.get("max_depth") else cfg.max_depth
-    cfg = dataclasses.replace(cfg, metric=bool(metric), max_depth=float(max_depth))
+    max_depth = stated_depth or max_depth or cfg.max_depth
+    cfg = dataclasses.replace(cfg, metric=metric, max_depth=float(max_depth))
     try:
         params = convert_official(state, cfg)
     except ValueError as err:

@@ -4,6 +4,7 @@ training step compiles once per run; a fresh directory keeps the run's time hone
 
 import atexit
 import os
+import pathlib
 import shutil
 import tempfile
 
@@ -25,3 +26,16 @@ def four_devices():
     devices = jax.devices()
     assert len(devices) >= 4, f"expected 4 fake CPU devices, got {devices}"
     return devices[:4]
+
+
+REALDATA = pathlib.Path(__file__).resolve().parents[2] / "shared" / "realdata"
+"""Real thermal files (MS2 frames and lists, FLIR TIFF / .fff) beside the repository; absent in
+a user's clone, where the tests that need them skip."""
+
+
+@pytest.fixture(scope="session")
+def realdata() -> pathlib.Path:
+    if not REALDATA.is_dir():
+        pytest.skip(f"real thermal test files not found at {REALDATA} (they sit beside the "
+                    "repository in the project's shared folder, not in a clone)")
+    return REALDATA

@@ -6,16 +6,21 @@ import signal
 
 import cv2
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from da_params import random_params
+from ms2_layout import official_sequences, partial_ms2
 
-from irdepth_jax import cli
+from irdepth_jax import cli, evaluate
 from irdepth_jax.config import get_config
 from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.models.depth_anything import depth_anything_config
 from irdepth_jax.train import loop
 from irdepth_jax.train.checkpoint import Checkpointer, restore_model
 from irdepth_jax.train.loop import WALL_CLOCK_FIELDS, init_unet
 from irdepth_jax.train.state import TrainState
+from irdepth_jax.weights import to_official_state_dict
 
 QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 
@@ -43,9 +48,11 @@ def stage1_run(data, tmp_path_factory):
 
 
 def read_metrics(workdir):
+    """The step and eval records of metrics.jsonl, without wall-clock fields or info records."""
     with open(os.path.join(workdir, "metrics.jsonl")) as f:
         rows = [json.loads(line) for line in f]
-    return [{k: v for k, v in r.items() if k not in WALL_CLOCK_FIELDS} for r in rows]
+    return [{k: v for k, v in r.items() if k not in WALL_CLOCK_FIELDS} for r in rows
+            if r.get("kind") != "info"]
 
 
 def final_params(workdir, phase="stage1_i2"):
@@ -211,7 +218,7 @@ def test_ctrl_c_saves_a_checkpoint(data, stage1_run, tmp_path, capsys, monkeypat
 
 
 # --------------------------------------------------------------------------- stage 2 + tools
-def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys):
+def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys, monkeypatch):
     work = tmp_path / "s2"
     code, out, err = run(["train", "stage2", "--data", data, "--workdir", work, "--steps", "2",
                           "--stage1-checkpoint", stage1_run, *QUICK], capsys)
@@ -228,6 +235,33 @@ def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys):
     assert {"d1", "abs_rel", "rmse", "silog"} <= set(table["stage2"]["all"])
     assert {"psnr", "ssim", "entropy", "miou"} <= set(table["stage1"]["all"])
     assert "| all |" in (work / "eval_test.md").read_text() and "abs_rel" in out
+    test_frames = len(loop.DataSource(str(data)).frames("test")[1])
+    assert table["protocol"] == {"stride": 1, "frames": test_frames, "align": "none",
+                                 "clamp": [1e-3, 80.0]}
+    assert table["stage2"]["all"]["nonfinite_images"] == 0 and "WARNING" not in err
+
+    # A model predicting NaN is reported loudly, not scored (d1 = 0, silog = 0 before).
+    monkeypatch.setitem(evaluate._PREDICT, "stage2",
+                        lambda cfg, variables, batch: {"depth": jnp.full(batch["raw14"].shape,
+                                                                         jnp.nan)})
+    evaluate._eval_step.cache_clear()
+    try:
+        code, out, err = run(["eval", "--workdir", work, "--data", data, "--split", "test",
+                              "--align", "median", "--stride", "2", "--out", tmp_path / "nan"],
+                             capsys)
+    finally:
+        evaluate._eval_step.cache_clear()
+    assert code == 0, err
+    nan = json.loads((tmp_path / "nan" / "eval_test.json").read_text())
+    frames = len(range(test_frames)[0:-1:2])
+    assert nan["protocol"] == {"stride": 2, "frames": frames, "align": "median",
+                               "clamp": [1e-3, 80.0]}
+    assert nan["stage2"]["all"]["nonfinite_images"] == frames
+    assert np.isnan(nan["stage2"]["all"]["d1"]) and np.isnan(nan["stage2"]["all"]["silog"])
+    assert [ln for ln in err.splitlines() if "non-finite" in ln] == [
+        ("irdepth: WARNING: the model predicted non-finite depth (NaN / inf) on "
+         f"{nan['stage2']['all']['nonfinite_pixels']} pixels of {frames} of {frames} images; "
+         "their metrics are NaN")]
 
     raw = np.asarray(loop.DataSource(str(data)).frames("test")[0][0]["raw14"])
     frames = tmp_path / "frames"
@@ -257,7 +291,8 @@ def test_synth(tmp_path, capsys):
 
 
 def test_ms2_layout_is_detected(tmp_path, capsys):
-    """A directory with MS2's layout trains without --format (no labels: I-2 sees only 255)."""
+    """A directory with MS2's layout trains without --format; it has no labels, so I-2 mixes in
+    rendered labelled scenes (stage1.seg_labels=synthetic) and its cross-entropy is not 0."""
     root = tmp_path / "ms2"
     rng = np.random.default_rng(0)
     for split, seq in (("train", "_seq_a"), ("val", "_seq_b")):
@@ -273,16 +308,104 @@ def test_ms2_layout_is_detected(tmp_path, capsys):
             cv2.imwrite(str(depth_dir / f"{k:06d}.png"),
                         rng.integers(0, 30 * 256, (32, 48)).astype(np.uint16))
     work = tmp_path / "w"
-    code, out, err = run(["train", "stage1", "--data", root, "--workdir", work, "--steps", "1",
-                          *QUICK], capsys)
+    code, out, err = run(["train", "stage1", "--data", root, "--workdir", work, "--steps", "2",
+                          *QUICK, "stage1.seg_labels=synthetic", "stage1.synthetic_labeled=8"],
+                         capsys)
     assert code == 0, err
+    assert "'synthetic': 8" in err  # says where the labels came from
     rows = read_metrics(work)
-    assert [r["stage"] for r in rows] == ["stage1_i1", "stage1_i2"]
-    assert rows[1]["ce"] == 0.0 and np.isfinite(rows[1]["loss"])
-    # the MS2 evaluation protocol: every N-th frame of each sequence
-    for stride, count in ((1, 4), (2, 2), (3, 2)):
+    assert [r["stage"] for r in rows] == ["stage1_i1"] * 2 + ["stage1_i2"] * 2
+    assert sum(r["ce"] for r in rows[2:]) > 0 and np.isfinite(rows[-1]["loss"])
+    # the MS2 evaluation protocol: frames[0:-1:N] of the split (every frame for N = 1)
+    for stride, count in ((1, 4), (2, 2), (3, 1)):
         code, out, err = run(["eval", "--workdir", work, "--data", root, "--split", "val",
                               "--stride", str(stride), "--out", tmp_path / f"e{stride}"], capsys)
         assert code == 0, err
         with open(tmp_path / f"e{stride}" / "eval_val.json") as f:
-            assert json.load(f)["stage1"]["all"]["count"] == count
+            result = json.load(f)
+        assert result["stage1"]["all"]["count"] == result["protocol"]["frames"] == count
+        assert result["protocol"]["stride"] == stride
+
+
+def test_partial_ms2_download_warns_once_and_strict_fails(stage1_run, realdata, tmp_path,
+                                                         capsys):
+    lists = realdata / "ms2_lists"
+    day = official_sequences(lists, "test_day_list.txt")
+    train = official_sequences(lists, "train_list.txt")
+    root = partial_ms2(lists, tmp_path / "ms2", present=[day[0], day[2], train[0]],
+                       size=(32, 48))
+    missing = "1 of 3 sequences of test_day_list.txt are not on disk"
+    code, _, err = run(["eval", "--workdir", stage1_run, "--data", root, "--split",
+                        "test_day", "--strict", "--out", tmp_path / "e"], capsys)
+    one_line_error(code, err, missing, day[1])
+    code, _, err = run(["train", "stage1", "--data", root, "--workdir", tmp_path / "w",
+                        "--strict", *QUICK, "stage1.seg_labels=none"], capsys)
+    one_line_error(code, err, f"{len(train) - 1} of {len(train)} sequences of train_list.txt",
+                   train[-1])
+    code, _, err = run(["eval", "--workdir", stage1_run, "--data", root, "--split",
+                        "test_day", "--stride", "2", "--out", tmp_path / "e"], capsys)
+    assert code == 0, err
+    assert [ln for ln in err.splitlines() if "not on disk" in ln] == [
+        (f"irdepth: warning: {root}: {missing} (no sync_data/<seq>/thr/img_left), "
+         f"skipped: {day[1]}")], err
+    assert "DatasetWarning" not in err and "warnings.warn" not in err
+    result = json.loads((tmp_path / "e" / "eval_test_day.json").read_text())
+    assert result["protocol"]["frames"] == 3 and result["stage1"]["all"]["count"] == 3
+
+
+# --------------------------------------------------------------------------- set-up errors
+BASELINE = ["stage2.preprocessing=he", "stage2.sky_loss=false"]  # Stage II without Stage I
+
+
+def test_stage2_says_what_it_loaded_from_a_released_checkpoint(data, tmp_path, capsys):
+    torch = pytest.importorskip("torch")
+    params = random_params(depth_anything_config("tiny"), seed=2)
+    ckpt = tmp_path / "depth_anything_v2_metric_hypersim_vits.pth"  # an official metric name
+    torch.save({k: torch.from_numpy(v) for k, v in to_official_state_dict(params).items()}, ckpt)
+    work = tmp_path / "s2"
+    args = ["train", "stage2", "--data", data, "--steps", "1", *QUICK, *BASELINE,
+            f"depth.checkpoint={ckpt}"]
+    code, _, err = run(args + ["--workdir", work], capsys)
+    assert code == 0, err
+    said = {"backbone": f"loaded from {ckpt} (encoder tiny)",
+            "head": f"loaded from {ckpt} (metric, max_depth 20 m)",
+            "max_depth": "warning: the head was trained for max_depth 20 m; depth.max_depth=80 "
+                         "scales its output by 4"}
+    for key, value in said.items():
+        assert f"irdepth: stage2: {key}: {value}" in err.splitlines()
+    assert {"step": 0, "stage": "stage2", "kind": "info", **said} in loop.read_metrics(
+        os.path.join(work, "metrics.jsonl"))
+    ckpt.unlink()  # the run's own checkpoint is all its evaluation needs
+    code, _, err = run(["eval", "--workdir", work, "--data", data, "--split", "test"], capsys)
+    assert code == 0, err
+    code, _, err = run(args + ["--workdir", tmp_path / "again"], capsys)
+    one_line_error(code, err, "depth.checkpoint", f"no checkpoint at '{ckpt}'")
+    assert not (tmp_path / "again").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["stage1", "stage1.batch_size=1", "stage1.accum_steps=4"],
+     "stage1.batch_size=1 is not a multiple of stage1.accum_steps=4 x 1 device: set "
+     "stage1.accum_steps=1 or stage1.batch_size=4"),
+    (["stage1", "stage1.batch_size=6", "stage1.accum_steps=4", "--devices", "2"],
+     "stage1.batch_size=6 is not a multiple of stage1.accum_steps=4 x 2 devices: set "
+     "stage1.accum_steps=3 or stage1.batch_size=8"),
+    (["stage2", *BASELINE, "stage2.batch_size=6", "--devices", "4"],
+     "stage2.batch_size=6 is not a multiple of 4 devices: set --devices 3 or "
+     "stage2.batch_size=8"),
+    (["stage1", "stage1.batch_size=64", "stage1.accum_steps=1"],
+     "stage1.batch_size=64 is larger than the 16 training frames of stage1_i1 (an epoch drops "
+     "its incomplete last batch, so it would have no step): set stage1.batch_size=16"),
+    (["stage1", "stage1.batch_size=12", "stage1.accum_steps=4"],  # 9 labelled: before I-1 runs
+     "stage1.batch_size=12 is larger than the 9 training frames of stage1_i2 (an epoch drops "
+     "its incomplete last batch, so it would have no step): set stage1.batch_size=8"),
+    (["stage2", *BASELINE, "stage2.batch_size=18"],
+     "stage2.batch_size=18 is larger than the 16 training frames of stage2"),
+])
+def test_batch_that_cannot_be_split_is_refused_before_the_run(data, tmp_path, capsys, argv,
+                                                              message):
+    work = tmp_path / "w"
+    code, _, err = run(["train", *argv[:1], "--data", data, "--workdir", work, "--no-progress",
+                        *argv[1:]], capsys)
+    one_line_error(code, err, message)
+    assert not work.exists()

@@ -174,3 +174,33 @@ def test_write_sample_rejects_bad_maps(tmp_path):
         write_sample(tmp_path, "a", {k: v for k, v in s.items() if k != "seg"} | {"labeled": True})
     with pytest.raises(ValueError, match="sample id"):
         write_sample(tmp_path, "../a", s)
+
+
+def test_16_bit_counts(tmp_path):
+    """A 16-bit camera's frames: written and read with raw_bits=16 or 'auto'; read as 14-bit
+    they are an error naming the file and the setting that reads them."""
+    from irdepth_jax.data.rawio import detect_raw_bits
+
+    rng = np.random.default_rng(5)
+    samples = [_sample(rng), _sample(rng, labeled=False)]
+    samples[1]["raw14"] = samples[1]["raw14"] * 4 + 3  # up to 65535: over 14 bits
+    with pytest.raises(ValueError, match=r"raw14 counts must be in 0\.\.16383"):
+        write_sample(tmp_path, "f1", samples[1])
+    records = []
+    for i, s in enumerate(samples):
+        r = dict(id=f"f{i}", split="train", seg_split=None, condition="day", labeled=False)
+        r.update(write_sample(tmp_path, r["id"], s, raw_bits=16))
+        records.append(r)
+    write_manifest(tmp_path, records, 12, 16)
+    with pytest.raises(DatasetError, match=r"raw14/f1\.png: raw counts exceed 14 bits: .*"
+                                           r"data\.raw_bits=16"):
+        FolderDataset(tmp_path)[1]
+    for bits in (16, "auto"):
+        np.testing.assert_array_equal(FolderDataset(tmp_path, raw_bits=bits)[1]["raw14"],
+                                      samples[1]["raw14"])
+    ds = FolderDataset(tmp_path, raw_bits="auto")
+    assert detect_raw_bits(ds, [0, 1]) == 16
+    assert detect_raw_bits(ds, [0]) == 14
+    assert detect_raw_bits(ds, [0, 0, 0, 1], max_frames=2) == 16  # first and last of a sample
+    with pytest.raises(ValueError, match="data.raw_bits 12"):
+        FolderDataset(tmp_path, raw_bits=12)

@@ -5,12 +5,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from irdepth_jax.imaging.raw import RAW_MAX, check_raw14, normalize_raw
+from irdepth_jax.imaging.raw import RAW_MAX, check_raw, normalize_raw
 
 
-def test_check_raw14_accepts_14bit_integers():
-    check_raw14(np.array([[0, RAW_MAX], [5000, 3]], np.uint16))
-    check_raw14(np.array([[0, 16383]], np.int32))
+def test_check_raw_accepts_14bit_integers():
+    check_raw(np.array([[0, RAW_MAX], [5000, 3]], np.uint16))
+    check_raw(np.array([[0, 16383]], np.int32))
 
 
 @pytest.mark.parametrize(
@@ -24,9 +24,9 @@ def test_check_raw14_accepts_14bit_integers():
         (np.zeros((0, 4), np.uint16), "empty"),
     ],
 )
-def test_check_raw14_rejects(bad, message):
+def test_check_raw_rejects(bad, message):
     with pytest.raises(ValueError, match=message):
-        check_raw14(bad)
+        check_raw(bad)
 
 
 def test_normalize_fixed_hand_values():
@@ -70,3 +70,25 @@ def test_normalize_rejects_static_dtypes_under_jit(dtype):
 def test_normalize_unknown_mode():
     with pytest.raises(ValueError, match="unknown mode"):
         normalize_raw(jnp.zeros((4, 4), jnp.uint16), "log")
+
+
+def test_check_raw_16_bits():
+    full = np.array([[0, 2**16 - 1], [17899, 19192]], np.uint16)
+    check_raw(full, bits=16)
+    with pytest.raises(ValueError, match=r"exceed 14 bits: maximum 65535 > 16383 .*"
+                                         r"data\.raw_bits=16.*--raw-bits 16"):
+        check_raw(full)
+    with pytest.raises(ValueError, match=r"exceed 16 bits: maximum 70000 > 65535$"):
+        check_raw(np.array([[0, 70000]], np.int32), bits=16)
+    with pytest.raises(ValueError, match="expected a raw 16-bit frame .*8-bit"):
+        check_raw(np.zeros((2, 2), np.uint8), bits=16)
+    with pytest.raises(ValueError, match="bit depth 12"):
+        check_raw(full, bits=12)
+
+
+def test_normalize_fixed_16_bits_hand_formula():
+    raw = np.array([[0, 65535, 17899, 19192, 16383]], np.uint16)
+    out = np.asarray(jax.jit(lambda r: normalize_raw(r, "fixed", bits=16))(raw))
+    np.testing.assert_allclose(out, raw.astype(np.float64) / (2**16 - 1), rtol=1e-6)
+    with pytest.raises(ValueError, match="expected a raw 16-bit frame"):
+        normalize_raw(jnp.zeros((4, 4), jnp.float32), "fixed", bits=16)

@@ -136,3 +136,15 @@ def test_combined_gradient_finite_under_jit_with_empty_masks():
 
     ok, g = _finite_grad(loss, pred)
     assert ok and float(jnp.abs(g).max()) == 0.0
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_silog_of_a_nonfinite_prediction_is_nan_under_jit(bad):
+    target = jnp.full((2, 3, 3), 5.0)
+    mask = jnp.ones((2, 3, 3), bool).at[1, 0, 0].set(False)
+    loss = jax.jit(silog_loss)
+    assert np.isnan(float(loss(jnp.full((2, 3, 3), bad), target, mask)))  # was 0.0 for NaN
+    one = target.at[0, 2, 2].set(bad)
+    assert np.isnan(float(loss(one, target, mask)))
+    # Off the mask (no ground truth there) a non-finite prediction does not count.
+    assert float(loss(target.at[1, 0, 0].set(bad), target, mask)) == 0.0

@@ -198,3 +198,49 @@ def test_confusion_matrix_and_miou_hand_worked():
     assert float(mean_iou(cm)) == pytest.approx((1 / 3 + 2 / 3 + 0.0) / 3)
     assert float(mean_iou(np.zeros((3, 3)))) == 0.0
     assert np.isfinite(np.asarray(per_class_iou(np.zeros((3, 3)))[0])).all()
+
+
+def _align_case():
+    """11 valid pixels: gt 2 (x5) and 4 (x6); pred 1 (x5) and 3 (x6)."""
+    gt = np.array([[2.0] * 5 + [4.0] * 6 + [0.0]]).reshape(1, 3, 4)  # last pixel: no depth
+    pred = np.array([[1.0] * 5 + [3.0] * 6 + [7.0]]).reshape(1, 3, 4)
+    return pred, gt
+
+
+@pytest.mark.parametrize("align, min_depth, abs_rel", [
+    (None, 1e-3, (5 * 0.5 + 6 * 0.25) / 11),
+    # median(gt) / median(pred) = 4 / 3: pred 4/3 (off by 1/3 of 2) and 4 (exact).
+    ("median", 1e-3, 5 * (2 / 3) / 2 / 11),
+    # The clamp comes after the alignment: 4/3 is raised to min_depth 1.5.
+    ("median", 1.5, 5 * 0.5 / 2 / 11),
+    # Least squares s * pred + t fits gt exactly: s = 1, t = 1.
+    ("scale_shift", 1e-3, 0.0),
+])
+def test_alignment_and_clamp_hand_worked(align, min_depth, abs_rel):
+    pred, gt = _align_case()
+    m = depth_metrics(pred, gt, align=align, min_depth=min_depth)
+    assert m["abs_rel"] == pytest.approx(abs_rel, abs=1e-6) and m["count"] == 1
+
+
+def test_nonfinite_predictions_are_nan_and_counted_under_jit():
+    gt = np.full((3, 4, 5), 10.0, np.float32)
+    mask = np.ones(gt.shape, bool)
+    mask[2, 0, 0] = False
+    pred = gt.copy()
+    pred[0] = np.nan  # all NaN: was scored d1 = 0 and silog = 0, a finite count
+    pred[1, 1, 1] = np.inf  # one +inf pixel: the clamp alone would make it 80 m
+    pred[2, 0, 0] = np.nan  # NaN off the mask only: the image still scores
+    per = jax.jit(per_image_depth_metrics, static_argnames="align")(pred, gt, mask)
+    for k in DEPTH_METRICS:
+        assert np.isnan(per[k][:2]).all() and np.isfinite(per[k][2]), k
+    np.testing.assert_array_equal(per["nonfinite"], [20, 1, 1])
+    acc = DepthMetricAccumulator(align="median")
+    acc.update(pred, gt, mask, conditions=["day", "night", "dusk"])
+    res = acc.result()
+    assert all(math.isnan(res[g][k]) for g in ("all", "day", "night") for k in DEPTH_METRICS)
+    assert res["dusk"]["d1"] == 1.0 and res["dusk"]["abs_rel"] == pytest.approx(0.0)
+    assert (res["all"]["nonfinite_pixels"], res["all"]["nonfinite_images"]) == (22, 3)
+    assert (res["night"]["nonfinite_pixels"], res["night"]["nonfinite_images"]) == (1, 1)
+    assert res["all"]["count"] == 3
+    clean = depth_metrics(gt, gt)
+    assert clean["nonfinite_pixels"] == clean["nonfinite_images"] == 0

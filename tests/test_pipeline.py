@@ -14,7 +14,7 @@ from irdepth_jax.imaging.tonemap import clahe
 from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD
 from irdepth_jax.models.pipeline import (depth_from_rgb, depth_input, hsv_pseudo_rgb,
                                          predict_depth, sky_mask, unet_outputs, unet_to_hsv)
-from irdepth_jax.train.loop import host_image, init_depth, init_unet
+from irdepth_jax.train.loop import host_image, init_unet, random_depth
 from irdepth_jax.train.steps import stage2_loss_fn
 
 CFG = get_config("tiny")
@@ -57,7 +57,7 @@ def test_sky_mask_and_depth_input():
 
 @pytest.fixture(scope="module")
 def models():
-    return init_unet(CFG), init_depth(CFG)
+    return init_unet(CFG), random_depth(CFG)
 
 
 @pytest.fixture(scope="module")
@@ -113,6 +113,6 @@ def test_baseline_preprocessing_images(frames):
     loss_fn = stage2_loss_fn(cfg, 70.0)
     batch = {"raw14": frames["raw14"], "depth": frames["depth"], "valid": frames["valid"],
              "image": image}
-    da = init_depth(cfg)
+    da = random_depth(cfg)
     loss, (metrics, _) = jax.jit(loss_fn)(da, {}, None, batch, jax.random.PRNGKey(0))
     assert np.isfinite(float(loss)) and "sky" not in metrics

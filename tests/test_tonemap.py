@@ -231,3 +231,19 @@ def test_dde_and_camera_like_enhance_small_detail():
     assert contrast(camera_like(raw)) > 1.5 * linear
     with pytest.raises(ValueError, match="plateau"):
         dde(raw, plateau=-1.0)
+
+
+@pytest.mark.parametrize("name", sorted(TONEMAPS))
+def test_16_bit_counts(name):
+    """A 16-bit camera's frame (counts over 14 bits) is mapped with bits=16; the histogram maps
+    depend on the order of the levels only, so counts shifted left by 2 bits map as before."""
+    raw14 = _scene()
+    raw16 = raw14 << 2
+    assert raw16.max() > 2**14 - 1
+    out = TONEMAPS[name](raw16, bits=16)
+    assert out.dtype == np.uint8 and out.shape == raw16.shape
+    assert out.min() <= 5 and out.max() >= 250, (name, out.min(), out.max())
+    if name in ("linear", "he", "plateau", "double_plateau"):
+        np.testing.assert_array_equal(out, TONEMAPS[name](raw14))
+    with pytest.raises(ValueError, match="exceed 16 bits"):
+        TONEMAPS[name](raw16.astype(np.int32) + 2**16, bits=16)

@@ -10,8 +10,8 @@ import pytest
 from irdepth_jax.config import get_config
 from irdepth_jax.data.folder import write_synthetic_dataset
 from irdepth_jax.evaluate import evaluate_stage1, evaluate_stage2
-from irdepth_jax.train.loop import (DataSource, RunOptions, init_depth, init_unet, make_parallel,
-                                    train_stage1, train_stage2)
+from irdepth_jax.train.loop import (DataSource, RunOptions, init_unet, make_parallel,
+                                    random_depth, train_stage1, train_stage2)
 
 
 @pytest.mark.slow
@@ -29,9 +29,10 @@ def test_tiny_preset_learns(tmp_path):
     _, _, model = load_model(str(tmp_path / "s2"))
     dataset, test = source.frames("test")
     dp = make_parallel(RunOptions(str(tmp_path), devices=1))
-    before1 = evaluate_stage1(cfg, init_unet(cfg), dataset, test, dp)["all"]
-    after1 = evaluate_stage1(cfg, s1["unet"], dataset, test, dp)["all"]
-    before2 = evaluate_stage2(cfg, s1["unet"], init_depth(cfg), dataset, test, dp)["all"]
+    seg_test = source.seg_frames("test")
+    before1 = evaluate_stage1(cfg, init_unet(cfg), dataset, test, dp, seg_frames=seg_test)["all"]
+    after1 = evaluate_stage1(cfg, s1["unet"], dataset, test, dp, seg_frames=seg_test)["all"]
+    before2 = evaluate_stage2(cfg, s1["unet"], random_depth(cfg), dataset, test, dp)["all"]
     after2 = evaluate_stage2(cfg, model["unet"], model["depth"], dataset, test, dp)["all"]
     print(f"PSNR {before1['psnr']:.2f} -> {after1['psnr']:.2f}, mIoU {before1['miou']:.3f} -> "
           f"{after1['miou']:.3f}, d1 {before2['d1']:.3f} -> {after2['d1']:.3f}")

@@ -1,5 +1,6 @@
 """Checkpoint import/export: official key layout, layout conversions, strictness, save/load."""
 
+import json
 import sys
 
 import flax.linen as nn
@@ -82,10 +83,10 @@ def test_safetensors_official_layout_round_trip(tiny, tmp_path):
     _, params = tiny
     path = tmp_path / "tiny.safetensors"
     save_file(to_official_state_dict(params), str(path))
-    cfg, loaded = load_depth_anything(path)
+    cfg, loaded = load_depth_anything(path, kind="relative")
     assert cfg == depth_anything_config("tiny")  # encoder and head widths inferred from the shapes
     _assert_same_tree(loaded, params)
-    cfg, _ = load_depth_anything(path, encoder="tiny", metric=True, max_depth=20)
+    cfg, _ = load_depth_anything(path, encoder="tiny", kind="metric", max_depth=20)
     assert cfg.metric and cfg.max_depth == 20.0
 
 
@@ -98,13 +99,13 @@ def test_strict_errors_list_every_problem(tiny, tmp_path):
     path = tmp_path / "bad.safetensors"
     save_file(state, str(path))
     with pytest.raises(ValueError) as err:
-        load_depth_anything(path, encoder="tiny")
+        load_depth_anything(path, encoder="tiny", kind="relative")
     msg = str(err.value)
     assert "missing (1): pretrained/blocks_1/mlp/fc2/bias" in msg
     assert "unexpected (1): depth_head.scratch.refinenet5.out_conv.weight" in msg
     assert "wrong shape (1): depth_head.projects.2.weight: (1, 1, 32, 31)" in msg
     with pytest.raises(ValueError, match="wrong shape"):  # a tiny checkpoint is not a vits one
-        load_depth_anything(tmp_path / "bad.safetensors", encoder="vits")
+        load_depth_anything(tmp_path / "bad.safetensors", encoder="vits", kind="relative")
 
 
 def test_unknown_encoder_and_missing_file(tiny, tmp_path):
@@ -112,7 +113,7 @@ def test_unknown_encoder_and_missing_file(tiny, tmp_path):
     state = {k: v for k, v in to_official_state_dict(params).items() if ".blocks.3." not in k}
     save_file(state, str(tmp_path / "depth3.safetensors"))
     with pytest.raises(ValueError, match="no preset has embed_dim 32 and depth 3"):
-        load_depth_anything(tmp_path / "depth3.safetensors")
+        load_depth_anything(tmp_path / "depth3.safetensors", kind="relative")
     with pytest.raises(FileNotFoundError):
         load_depth_anything(tmp_path / "absent.safetensors")
 
@@ -121,8 +122,8 @@ def test_pth_official_and_metric_training_forms(tiny, tmp_path):
     torch = pytest.importorskip("torch")
     _, params = tiny
     state = {k: torch.from_numpy(v) for k, v in to_official_state_dict(params).items()}
-    torch.save(state, tmp_path / "plain.pth")
-    cfg, loaded = load_depth_anything(tmp_path / "plain.pth")
+    torch.save(state, tmp_path / "depth_anything_v2_vits.pth")  # the official relative name
+    cfg, loaded = load_depth_anything(tmp_path / "depth_anything_v2_vits.pth")
     assert not cfg.metric
     _assert_same_tree(loaded, params)
     torch.save({"model": {f"module.{k}": v for k, v in state.items()}, "epoch": 3}, tmp_path / "metric.pth")
@@ -142,3 +143,58 @@ def test_save_load_params_round_trip(tiny, tmp_path):
     _, params = tiny
     save_params(tmp_path / "p.msgpack", params)
     _assert_same_tree(load_params(tmp_path / "p.msgpack"), params)
+
+
+@pytest.fixture(scope="module")
+def official_state(tiny):
+    torch = pytest.importorskip("torch")
+    return {k: torch.from_numpy(v) for k, v in to_official_state_dict(tiny[1]).items()}
+
+
+@pytest.mark.parametrize("name, metric, max_depth", [
+    ("depth_anything_v2_vitl.pth", False, None),  # the official relative names
+    ("depth_anything_v2_metric_hypersim_vits.pth", True, 20.0),  # metric_depth/README.md
+    ("depth_anything_v2_metric_vkitti_vitl.pth", True, 80.0),
+    ("vits_metric_finetune.pth", True, 35.0),  # metric, range not stated: the max_depth argument
+])
+def test_head_kind_from_official_file_names(official_state, tmp_path, name, metric, max_depth):
+    torch = pytest.importorskip("torch")
+    folder = tmp_path / "metric_runs"  # only the file's own name counts
+    folder.mkdir()
+    torch.save(official_state, folder / name)
+    cfg, _ = load_depth_anything(folder / name, max_depth=35.0)
+    assert cfg.metric == metric
+    assert not metric or cfg.max_depth == max_depth
+
+
+def test_transformers_config_json_states_the_kind(tiny, tmp_path):
+    save_file(to_official_state_dict(tiny[1]), str(tmp_path / "model.safetensors"))
+    (tmp_path / "config.json").write_text(json.dumps({"depth_estimation_type": "metric",
+                                                      "max_depth": 20}))
+    cfg, _ = load_depth_anything(tmp_path)
+    assert cfg.metric and cfg.max_depth == 20.0
+    (tmp_path / "config.json").write_text("{}")  # transformers' default type is relative
+    cfg, _ = load_depth_anything(tmp_path)
+    assert not cfg.metric
+
+
+def test_ambiguous_and_foreign_files_are_refused_in_one_line(official_state, tmp_path):
+    torch = pytest.importorskip("torch")
+    torch.save(official_state, tmp_path / "model.pth")
+    with pytest.raises(ValueError, match=r"model\.pth: cannot tell whether its head is metric or "
+                                         r"relative.*depth\.checkpoint_kind") as err:
+        load_depth_anything(tmp_path / "model.pth")
+    assert "\n" not in str(err.value)
+    cfg, _ = load_depth_anything(tmp_path / "model.pth", kind="metric", max_depth=30)
+    assert cfg.metric and cfg.max_depth == 30.0
+    with pytest.raises(ValueError, match="kind 'metrc'"):
+        load_depth_anything(tmp_path / "model.pth", kind="metrc")
+    (tmp_path / "depth_anything_v2_vits.pth").write_text("not weights")
+    torch.save([1, 2], tmp_path / "list.pth")
+    (tmp_path / "x.safetensors").write_bytes(b"\x00" * 16)
+    for name, reason in (("depth_anything_v2_vits.pth", "not a PyTorch checkpoint"),
+                         ("list.pth", "holds a list, not a state dict"),
+                         ("x.safetensors", "not a safetensors file")):
+        with pytest.raises(ValueError, match=f"{tmp_path / name}: {reason}") as err:
+            load_depth_anything(tmp_path / name, kind="relative")
+        assert "\n" not in str(err.value)

@@ -12,10 +12,13 @@ Per map:
     maps (depth, depth_dense, valid, seg) with exact nearest neighbour, so no value is
     interpolated across objects: every output depth / label value occurs in the input, and
     `valid` keeps marking exactly the pixels whose depth is > 0.
-  * brightness: ir8 and rgb are multiplied by the factor (clipped to 0..255). raw14 holds
-    physical counts, not brightness: it gets the radiometric analogue, a responsivity (gain)
-    change around the frame mean, `mean + factor * (raw - mean)` clipped to 14 bits, so the
-    absolute level of the scene is kept and only the contrast of the counts scales.
+  * brightness: one factor for every intensity map, as the same change of the normalised image:
+    ir8 and rgb are multiplied by it (clipped to 0..255), and the sample gets
+    ``brightness`` = the factor (1.0 when the step does not fire), which the model applies to its
+    normalised raw input (`irdepth_jax.models.pipeline.unet_input`: clip(factor * x, 0, 1)).
+    The counts themselves are left alone: they are physical, and no change of them could brighten
+    the input under percentile normalisation (a gain on the counts is undone by it), so scaling
+    the counts while the 8-bit target gets brighter would teach contradictory pairs.
   * flip: every map.
 Non-map entries (id, condition, labeled, has_rgb, ...) are passed through.
 """
@@ -24,8 +27,6 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
-
-from irdepth_jax.imaging.raw import RAW_MAX
 
 INTENSITY_KEYS = ("raw14", "ir8", "rgb")
 LABEL_KEYS = ("depth", "depth_dense", "valid", "seg")
@@ -44,7 +45,7 @@ def augment(sample: dict, rng: np.random.Generator, *, p_crop: float = 0.1,
       p_crop, crop_range, p_brightness, brightness_range, p_flip: the paper's values by default.
 
     Returns:
-      dict with the same keys, shapes and dtypes.
+      dict with the same keys, shapes and dtypes, plus ``brightness`` (float32 factor).
     """
     maps = [k for k in INTENSITY_KEYS + LABEL_KEYS if k in sample]
     if not maps:
@@ -61,15 +62,12 @@ def augment(sample: dict, rng: np.random.Generator, *, p_crop: float = 0.1,
     if u[0] < p_crop:
         for k in maps:
             out[k] = _crop_resize(np.asarray(out[k]), ratio, k in INTENSITY_KEYS)
+    out["brightness"] = np.float32(1.0)
     if u[1] < p_brightness:
         for k in ("ir8", "rgb"):
             if k in out:
                 out[k] = np.clip(np.rint(out[k] * factor), 0, 255).astype(np.uint8)
-        if "raw14" in out:
-            raw = np.asarray(out["raw14"], np.float64)
-            mean = raw.mean()
-            scaled = np.rint(mean + factor * (raw - mean))
-            out["raw14"] = np.clip(scaled, 0, RAW_MAX).astype(np.uint16)
+        out["brightness"] = np.float32(factor)
     if u[2] < p_flip:
         for k in maps:
             out[k] = np.ascontiguousarray(np.asarray(out[k])[:, ::-1])
@@ -81,8 +79,24 @@ def _crop_resize(img: np.ndarray, ratio: float, intensity: bool) -> np.ndarray:
     h, w = img.shape[:2]
     ch, cw = max(1, round(h * ratio)), max(1, round(w * ratio))
     top, left = (h - ch) // 2, (w - cw) // 2
-    crop = img[top:top + ch, left:left + cw]
+    return _resize(img[top:top + ch, left:left + cw], (h, w), intensity)
+
+
+def _resize(img: np.ndarray, size: tuple[int, int], intensity: bool) -> np.ndarray:
+    """(h, w, ...) -> (size[0], size[1], ...): bilinear for intensity maps, exact nearest
+    neighbour for label-like maps (no value is made up between objects)."""
     interp = cv2.INTER_LINEAR if intensity else cv2.INTER_NEAREST_EXACT
     if img.dtype == np.bool_:
-        return cv2.resize(crop.view(np.uint8), (w, h), interpolation=interp).astype(bool)
-    return cv2.resize(np.ascontiguousarray(crop), (w, h), interpolation=interp)
+        return cv2.resize(np.ascontiguousarray(img).view(np.uint8), size[::-1],
+                          interpolation=interp).astype(bool)
+    return cv2.resize(np.ascontiguousarray(img), size[::-1], interpolation=interp)
+
+
+def resize_sample(sample: dict, height: int, width: int) -> dict:
+    """A sample with every map resized to (height, width) (same rules as the crop above);
+    non-map entries are passed through. Used to mix frames of another size into a dataset."""
+    out = dict(sample)
+    for k in INTENSITY_KEYS + LABEL_KEYS:
+        if k in out and np.shape(out[k])[:2] != (height, width):
+            out[k] = _resize(np.asarray(out[k]), (height, width), k in INTENSITY_KEYS)
+    return out

@@ -8,7 +8,8 @@ A dataset is a directory:
 ```
 DATASET/
   manifest.json            frame list and splits (written last: no manifest = not a dataset)
-  raw14/<id>.png           raw LWIR counts, 16-bit single-channel PNG, values 0..16383
+  raw14/<id>.png           raw LWIR counts, 16-bit single-channel PNG, values 0..16383 (14-bit
+                           sensors; 0..65535 for a 16-bit camera, read with raw_bits=16)
   ir8/<id>.png             the camera's 8-bit image, 8-bit single-channel PNG
   depth/<id>.png           depth, 16-bit PNG in 1/256 m (KITTI / MS2 convention), 0 = no depth
   seg/<id>.png             labels, 8-bit PNG: 0 sky, 1 building, 2 car, 3 bicycle, 4 road,
@@ -47,7 +48,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import pathlib
 import re
 import shutil
@@ -57,8 +57,10 @@ import numpy as np
 from tqdm import tqdm
 
 from irdepth_jax.config import IGNORE_LABEL
+from irdepth_jax.data.rawio import accepted_bits
 from irdepth_jax.data.synthetic import CONDITIONS, render_scene
-from irdepth_jax.imaging.raw import RAW_MAX
+from irdepth_jax.fileio import make_dirs, write_bytes, write_png
+from irdepth_jax.imaging.raw import check_raw
 
 FORMAT_NAME = "irdepth-folder"
 FORMAT_VERSION = 1
@@ -77,6 +79,10 @@ _RECORD_KEYS = ("id", "split", "seg_split", "condition", "labeled")
 
 class DatasetError(Exception):
     """A dataset file or directory is missing, corrupt or inconsistent (the message names it)."""
+
+
+class DatasetWarning(UserWarning):
+    """A dataset is read with parts left out (e.g. MS2 sequences not downloaded); one line."""
 
 
 # ----------------------------------------------------------------------------- PNG helpers
@@ -103,11 +109,10 @@ def read_png(path: pathlib.Path, dtype, channels: int) -> np.ndarray:
 
 
 def _write_png(path: pathlib.Path, img: np.ndarray) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if img.ndim == 3:
-        img = cv2.cvtColor(img, cv2.COLOR_RGB2BGR)
-    if not cv2.imwrite(str(path), img):
-        raise DatasetError(f"{path}: cannot write PNG")
+    """Writes an RGB or single-channel image as PNG, completely or not at all
+    (`fileio.write_png`; WriteError naming the file)."""
+    make_dirs(path.parent)
+    write_png(path, cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img)
 
 
 def encode_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
@@ -135,7 +140,7 @@ def _check_id(sample_id: str) -> str:
     return sample_id
 
 
-def write_sample(root, sample_id: str, sample: dict) -> dict:
+def write_sample(root, sample_id: str, sample: dict, raw_bits: int = 14) -> dict:
     """Writes one frame's PNGs under `root`.
 
     Args:
@@ -145,6 +150,7 @@ def write_sample(root, sample_id: str, sample: dict) -> dict:
         optionally valid (H, W) bool (default depth > 0), seg (H, W) uint8 (written only when
         'labeled' is true, default: seg present), rgb (H, W, 3) uint8 (written when present and
         'has_rgb' is not False), depth_dense (H, W) float metres.
+      raw_bits: bit depth of the raw14 counts, 14 or 16 (their accepted range 0..2^bits-1).
 
     Returns:
       the frame's manifest fields this function knows: labeled, has_rgb, has_depth_dense,
@@ -156,9 +162,10 @@ def write_sample(root, sample_id: str, sample: dict) -> dict:
     if raw.ndim != 2 or not np.issubdtype(raw.dtype, np.integer) or raw.size == 0:
         raise ValueError(
             f"sample {sid}: raw14 must be a 2-D integer array, got {raw.dtype} {raw.shape}")
-    if raw.min() < 0 or raw.max() > RAW_MAX:
+    top = 2**raw_bits - 1
+    if raw.min() < 0 or raw.max() > top:
         raise ValueError(
-            f"sample {sid}: raw14 counts must be in 0..{RAW_MAX}, got {raw.min()}..{raw.max()}")
+            f"sample {sid}: raw14 counts must be in 0..{top}, got {raw.min()}..{raw.max()}")
     shape = raw.shape
     maps = {"raw14": raw.astype(np.uint16), "ir8": np.asarray(sample["ir8"])}
     depth = encode_depth(sample["depth"], sample.get("valid"))
@@ -199,10 +206,8 @@ def write_manifest(root, records: list[dict], height: int, width: int, **meta) -
         _validate_record(r, root / "manifest.json")
     doc = dict(format=FORMAT_NAME, version=FORMAT_VERSION, height=int(height), width=int(width),
                **meta, frames=list(records))
-    tmp = root / "manifest.json.tmp"
-    root.mkdir(parents=True, exist_ok=True)
-    tmp.write_text(json.dumps(doc, indent=1))
-    os.replace(tmp, root / "manifest.json")
+    make_dirs(root)
+    write_bytes(root / "manifest.json", json.dumps(doc, indent=1).encode())
     return root / "manifest.json"
 
 
@@ -228,12 +233,14 @@ class FolderDataset:
 
     `ds[i]` -> sample dict; `ds.records[i]` -> manifest record; `len(ds)` frames.
     With `with_dense=True` samples also hold `depth_dense` (H, W) float32 (frames without the
-    file raise DatasetError).
+    file raise DatasetError). `raw_bits` (14, 16 or 'auto': up to 16) is the bit depth the raw
+    counts are checked against when a frame is read; a frame over it raises DatasetError.
     """
 
-    def __init__(self, root, with_dense: bool = False):
+    def __init__(self, root, with_dense: bool = False, raw_bits: int | str = 14):
         self.root = pathlib.Path(root)
         self.with_dense = with_dense
+        self.raw_bits = accepted_bits(raw_bits)
         if not self.root.is_dir():
             raise DatasetError(f"{self.root}: not a directory")
         path = self.root / "manifest.json"
@@ -274,10 +281,7 @@ class FolderDataset:
         """Sample dict of frame i (keys in the module docstring)."""
         r = self.records[i]
         sid = r["id"]
-        raw = self._png("raw14", sid, np.uint16, 1)
-        if raw.max() > RAW_MAX:
-            raise DatasetError(
-                f"{self.root / 'raw14' / (sid + '.png')}: counts up to {raw.max()}, over 14 bits")
+        raw = self.raw(i)
         depth_counts = self._png("depth", sid, np.uint16, 1)
         has_rgb = bool(r.get("has_rgb", False))
         hw = (self.height, self.width)
@@ -298,6 +302,16 @@ class FolderDataset:
             dense = self._png("depth_dense", sid, np.uint16, 1)
             sample["depth_dense"] = dense.astype(np.float32) / DEPTH_SCALE
         return sample
+
+    def raw(self, i: int) -> np.ndarray:
+        """Raw counts (H, W) uint16 of frame i, checked against `raw_bits`."""
+        sid = self.records[i]["id"]
+        raw = self._png("raw14", sid, np.uint16, 1)
+        try:
+            check_raw(raw, self.raw_bits)
+        except ValueError as err:
+            raise DatasetError(f"{self.root / 'raw14' / (sid + '.png')}: {err}") from None
+        return raw
 
     def indices(self, split: str | None = None, labeled: bool | None = None,
                 seg_split: str | None = None) -> np.ndarray:

@@ -17,29 +17,53 @@ the one of a test list naming the same sequence, else the `conditions` mapping g
 constructor, else 'unknown'.
 
 Frames are the img_left PNGs that have a depth_filtered file (others are skipped and counted in
-`skipped`), sorted by sequence then name. `stride` keeps every stride-th frame of each sequence
-(counted from its first frame): the MS2 evaluation protocol uses every 10th test frame, i.e.
-`MS2Dataset(root, 'test_day', stride=10)`.
+`skipped`), sorted by sequence (in list order) then name. A partial download is read as it is:
+sequences of the lists without sync_data/<seq>/thr/img_left are skipped with one
+`DatasetWarning` naming them (kept in `missing`); `strict=True` raises `MissingSequencesError`
+instead. The MS2 test protocol evaluates `subsample(ds.indices(), 10)`: the official loader's
+`frames[0:-1:10]` over the frames of the whole split (all its sequences concatenated).
 
-Raw counts must fit in 14 bits: a frame with a count over 16383 raises DatasetError naming the
-file (a 16-bit rescaled export, not sensor counts). `ir8` is `camera_like(raw)`; MS2 has no
+Raw counts are checked against `raw_bits` (MS2's sensor is 14-bit, the default): a frame with a
+count over it raises DatasetError naming the file. `ir8` is `camera_like(raw)`; MS2 has no
 aligned RGB or segmentation here: rgb zeros (has_rgb False), seg all 255 (labeled False).
 """
 
 from __future__ import annotations
 
 import pathlib
+import warnings
 
 import numpy as np
 
 from irdepth_jax.config import IGNORE_LABEL
-from irdepth_jax.data.folder import DEPTH_SCALE, DatasetError, read_png
-from irdepth_jax.imaging.raw import RAW_MAX
+from irdepth_jax.data.folder import DEPTH_SCALE, DatasetError, DatasetWarning, read_png
+from irdepth_jax.data.rawio import accepted_bits
+from irdepth_jax.imaging.raw import check_raw
 
 LIST_FILES = {"train": "train_list.txt", "val": "val_list.txt", "test_day": "test_day_list.txt",
               "test_night": "test_night_list.txt", "test_rainy": "test_rainy_list.txt"}
 _TEST_CONDITION = {"test_day": "day", "test_night": "night", "test_rainy": "rainy"}
 SPLITS = tuple(LIST_FILES) + ("test",)
+
+
+class MissingSequencesError(DatasetError):
+    """strict=True: sequences named by a split list are not on disk."""
+
+
+def subsample(indices: np.ndarray, stride: int) -> np.ndarray:
+    """The MS2 protocol's frame subsampling, as the official loader (UkcheolShin/SupDepth4Thermal
+    `DataLoader_MS2.crawl_folders_depth`) does it over the concatenated frames of a split.
+
+    Args:
+      indices: (N,) frame indices of the split, in order.
+      stride: 1 keeps every frame; N > 1 keeps `indices[0:-1:N]` (the last frame is never
+        picked, also when (len - 1) is a multiple of N). The test protocol uses 10.
+    Returns:
+      (M,) the kept indices.
+    """
+    if stride < 1:
+        raise ValueError(f"stride must be >= 1, got {stride}")
+    return indices if stride == 1 else indices[0:-1:stride]
 
 
 def _read_list(path: pathlib.Path) -> list[str]:
@@ -57,21 +81,24 @@ class MS2Dataset:
     Args:
       root: MS2 root (holding the *_list.txt files, sync_data/ and proj_depth/).
       split: one of SPLITS.
-      stride: keep every stride-th frame of each sequence (10 = the MS2 test protocol).
       conditions: optional {sequence: condition} for sequences no test list names.
+      strict: raise `MissingSequencesError` when a listed sequence is not on disk (default:
+        skip it, with one `DatasetWarning` naming the missing ones, listed in `missing`).
+      raw_bits: bit depth the raw counts are checked against when a frame is read: 14, 16 or
+        'auto' (up to 16, until a run resolves it).
     """
 
-    def __init__(self, root, split: str, stride: int = 1, conditions: dict | None = None):
+    def __init__(self, root, split: str, conditions: dict | None = None, strict: bool = False,
+                 raw_bits: int | str = 14):
         self.root = pathlib.Path(root)
+        self.raw_bits = accepted_bits(raw_bits)
         if not self.root.is_dir():
             raise DatasetError(f"{self.root}: not a directory")
         if not (self.root / "sync_data").is_dir():
             raise DatasetError(f"{self.root}: not an MS2 root (no sync_data/ directory)")
         if split not in SPLITS:
             raise ValueError(f"split must be one of {SPLITS}, got {split!r}")
-        if stride < 1:
-            raise ValueError(f"stride must be >= 1, got {stride}")
-        self.split, self.stride = split, stride
+        self.split = split
         known = dict(conditions or {})
         for name, cond in _TEST_CONDITION.items():
             path = self.root / LIST_FILES[name]
@@ -79,17 +106,18 @@ class MS2Dataset:
                 known.update({seq: cond for seq in _read_list(path)})
         parts = list(_TEST_CONDITION) if split == "test" else [split]
         self.records: list[dict] = []
-        self.skipped = 0
+        self.missing: list[str] = []
+        self.skipped = listed = 0
         for part in parts:
-            for seq in _read_list(self.root / LIST_FILES[part]):
+            sequences = _read_list(self.root / LIST_FILES[part])
+            listed += len(sequences)
+            for seq in sequences:
                 img_dir = self.root / "sync_data" / seq / "thr" / "img_left"
                 if not img_dir.is_dir():
-                    raise DatasetError(
-                        f"{img_dir}: missing (sequence {seq!r} of {LIST_FILES[part]})")
+                    self.missing.append(seq)
+                    continue
                 cond = _TEST_CONDITION.get(part) or known.get(seq, "unknown")
-                for k, img in enumerate(sorted(img_dir.glob("*.png"))):
-                    if k % stride:
-                        continue
+                for img in sorted(img_dir.glob("*.png")):
                     depth = self.root / "proj_depth" / seq / "thr" / "depth_filtered" / img.name
                     if not depth.is_file():
                         self.skipped += 1
@@ -97,6 +125,14 @@ class MS2Dataset:
                     self.records.append(dict(id=f"{seq}/{img.stem}", split=split, seg_split=None,
                                              condition=cond, labeled=False, raw_path=str(img),
                                              depth_path=str(depth)))
+        if self.missing:
+            what = (f"{self.root}: {len(self.missing)} of {listed} sequences of "
+                    f"{', '.join(LIST_FILES[p] for p in parts)} are not on disk "
+                    "(no sync_data/<seq>/thr/img_left)")
+            names = ", ".join(self.missing)
+            if strict or not self.records:
+                raise (MissingSequencesError if strict else DatasetError)(f"{what}: {names}")
+            warnings.warn(f"{what}, skipped: {names}", DatasetWarning, stacklevel=2)
         if not self.records:
             raise DatasetError(f"{self.root}: no thermal frames with depth in split {split!r}")
         self._max_depth: float | None = None
@@ -110,19 +146,26 @@ class MS2Dataset:
         from irdepth_jax.imaging.tonemap import camera_like
 
         r = self.records[i]
-        raw = read_png(r["raw_path"], np.uint16, 1)
-        if raw.max() > RAW_MAX:
-            raise DatasetError(f"{r['raw_path']}: counts up to {raw.max()}, over 14 bits "
-                               "(expected raw sensor counts)")
+        raw = self.raw(i)
         counts = read_png(r["depth_path"], np.uint16, 1)
         if counts.shape != raw.shape:
             raise DatasetError(
                 f"{r['depth_path']}: shape {counts.shape}, thermal frame {raw.shape}")
-        return dict(raw14=raw, ir8=np.asarray(camera_like(raw), np.uint8),
+        return dict(raw14=raw, ir8=np.asarray(camera_like(raw, bits=self.raw_bits), np.uint8),
                     rgb=np.zeros(raw.shape + (3,), np.uint8), has_rgb=False,
                     depth=counts.astype(np.float32) / DEPTH_SCALE, valid=counts > 0,
                     seg=np.full(raw.shape, IGNORE_LABEL, np.uint8), labeled=False,
                     condition=r["condition"], id=r["id"])
+
+    def raw(self, i: int) -> np.ndarray:
+        """Raw counts (H, W) uint16 of frame i, checked against `raw_bits`."""
+        path = self.records[i]["raw_path"]
+        raw = read_png(path, np.uint16, 1)
+        try:
+            check_raw(raw, self.raw_bits)
+        except ValueError as err:
+            raise DatasetError(f"{path}: {err}") from None
+        return raw
 
     def indices(self, split: str | None = None, labeled: bool | None = None,
                 seg_split: str | None = None) -> np.ndarray:

@@ -4,7 +4,7 @@ import importlib
 
 _EXPORTS = {
     "normalize_raw": "raw",
-    "check_raw14": "raw",
+    "check_raw": "raw",
     "gradient_magnitude": "gradients",
     "resize_gradient": "gradients",
     "CLASS_HUES": "color",

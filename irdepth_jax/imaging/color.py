@@ -22,7 +22,7 @@ building red (0), car yellow (60), bicycle magenta (300), road cyan (180), tree 
 
 assert len(CLASS_HUES) == len(CLASS_NAMES)
 
-_HUE_MODES = ("soft", "argmax")
+_HUE_MODES = ("soft", "argmax", "constant")
 _EPS = 1e-12
 
 
@@ -36,6 +36,8 @@ def class_hue(seg_logits, mode: str = "soft"):
         confident pixel gets its class hue. Where the weighted unit vectors cancel (e.g. equal
         probabilities), the hue is undefined: 0 is returned with a zero gradient.
         ``argmax``: the hue of the most probable class (not differentiable).
+        ``constant``: hue 0 everywhere, whatever the logits (an image that carries no
+        semantics, for a model whose segmentation branch was never trained).
 
     Returns:
       (B, H, W, 1) float32 hue in [0, 1).
@@ -49,6 +51,8 @@ def class_hue(seg_logits, mode: str = "soft"):
             f"expected {len(CLASS_HUES)} ({', '.join(CLASS_NAMES)})"
         )
     hues = jnp.asarray(CLASS_HUES, jnp.float32)
+    if mode == "constant":
+        return jnp.zeros(seg_logits.shape[:-1] + (1,), jnp.float32)
     if mode == "argmax":
         return hues[jnp.argmax(seg_logits, axis=-1)][..., None]
     probs = jax.nn.softmax(seg_logits.astype(jnp.float32), axis=-1)

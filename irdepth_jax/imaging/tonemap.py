@@ -1,11 +1,12 @@
-"""Classical 14-bit -> 8-bit tone mapping of raw LWIR frames (the paper's baselines).
+"""Classical raw -> 8-bit tone mapping of raw LWIR frames (the paper's baselines).
 
 Every function takes one raw frame, a 2-D integer array (H, W) (normally uint16) with counts in
-[0, 2^14 - 1] (checked by `irdepth_jax.imaging.raw.check_raw14`; 8-bit, float, NaN, negative or
-over-14-bit input raises ValueError), and returns a `uint8` array (H, W). They are NumPy /
-OpenCV (not JAX): they run in data pipelines and in the synthetic renderer, not inside a jitted
-model. Histogram methods build a 16384-entry lookup
-table from `np.bincount` + `np.cumsum` and apply it with `np.take`; nothing loops over pixels.
+[0, 2^bits - 1], `bits` = 14 (default) or 16 (checked by `irdepth_jax.imaging.raw.check_raw`;
+8-bit, float, NaN, negative or over-`bits` input raises ValueError), and returns a `uint8` array
+(H, W). They are NumPy / OpenCV (not JAX): they run in data pipelines and in the synthetic
+renderer, not inside a jitted model. Histogram methods build a lookup table over the raw levels
+0..max(frame) from `np.bincount` + `np.cumsum` and apply it with `np.take`; nothing loops over
+pixels. The maps are histogram- or span-relative, so `bits` only sets the accepted range.
 
 A constant frame has no contrast to map: every method returns mid-grey (128) for it.
 
@@ -20,10 +21,8 @@ from typing import Callable
 import cv2
 import numpy as np
 
-from irdepth_jax.imaging.raw import check_raw14
+from irdepth_jax.imaging.raw import check_raw
 
-RAW_BITS = 14
-NUM_BINS = 1 << RAW_BITS  # 16384 raw levels
 OUT_LEVELS = 256
 MID_GREY = 128
 
@@ -42,10 +41,10 @@ __all__ = [
 ]
 
 
-def _check_raw(raw: np.ndarray, arg: str = "raw") -> np.ndarray:
-    """Validates one raw 14-bit frame (2-D, integer counts 0..16383); returns it as uint16."""
+def _check_raw(raw: np.ndarray, bits: int, arg: str = "raw") -> np.ndarray:
+    """Validates one raw frame (2-D, integer counts 0..2^bits-1); returns it as uint16."""
     try:
-        check_raw14(raw)
+        check_raw(raw, bits)
     except ValueError as err:
         raise ValueError(f"tonemap: `{arg}`: {err}") from None
     raw = np.asarray(raw)
@@ -57,14 +56,14 @@ def _check_raw(raw: np.ndarray, arg: str = "raw") -> np.ndarray:
 
 
 def _histogram(levels: np.ndarray) -> np.ndarray:
-    """Counts of each of the 16384 raw levels, int64 (16384,)."""
-    return np.bincount(levels.ravel(), minlength=NUM_BINS)
+    """Counts of each raw level 0..levels.max(), int64 (levels.max() + 1,)."""
+    return np.bincount(levels.ravel())
 
 
 def _equalizing_lut(hist: np.ndarray) -> np.ndarray:
-    """Lookup table (16384,) float64 in [0, 255] that equalises a (possibly clipped) histogram.
+    """Lookup table (K,) float64 in [0, 255] that equalises a (possibly clipped) histogram (K,).
 
-    Same rule as OpenCV's `equalizeHist`, over 16384 bins instead of 256: with c the cumulative
+    Same rule as OpenCV's `equalizeHist`, over K raw levels instead of 256: with c the cumulative
     histogram and c0 the count of the lowest occupied level,
     lut[v] = 255 * (c[v] - c0) / (c[-1] - c0). The lowest occupied level maps to 0 and the
     highest to 255. A histogram with one occupied level maps to mid-grey.
@@ -73,7 +72,7 @@ def _equalizing_lut(hist: np.ndarray) -> np.ndarray:
     first = cdf[np.flatnonzero(hist)[0]]
     span = cdf[-1] - first
     if span <= 0:
-        return np.full(NUM_BINS, float(MID_GREY))
+        return np.full(hist.size, float(MID_GREY))
     return np.clip((cdf - first) * ((OUT_LEVELS - 1) / span), 0.0, OUT_LEVELS - 1)
 
 
@@ -82,17 +81,19 @@ def _apply_lut(lut: np.ndarray, levels: np.ndarray) -> np.ndarray:
     return np.take(np.rint(lut).astype(np.uint8), levels)
 
 
-def linear_tail(raw: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.ndarray:
+def linear_tail(raw: np.ndarray, low: float = 1.0, high: float = 99.0, bits: int = 14
+                ) -> np.ndarray:
     """Linear stretch with tail rejection: clip to the [low, high] percentiles, scale to 0-255.
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       low, high: percentiles in [0, 100], low < high. They are the inverted-CDF percentiles of the
         raw histogram (the smallest level whose cumulative share reaches p %).
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8; levels <= the low percentile -> 0, >= the high one -> 255.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     if not 0.0 <= low < high <= 100.0:
         raise ValueError(f"linear_tail: need 0 <= low < high <= 100, got low={low}, high={high}")
     hist = _histogram(raw)
@@ -104,22 +105,23 @@ def linear_tail(raw: np.ndarray, low: float = 1.0, high: float = 99.0) -> np.nda
         lo, hi = occupied[0], occupied[-1]
         if hi == lo:
             return np.full(raw.shape, MID_GREY, np.uint8)
-    levels = np.arange(NUM_BINS, dtype=np.float64)
+    levels = np.arange(hist.size, dtype=np.float64)
     lut = np.clip((levels - lo) * ((OUT_LEVELS - 1) / (hi - lo)), 0.0, OUT_LEVELS - 1)
     return _apply_lut(lut, raw)
 
 
-def histogram_equalization(raw: np.ndarray) -> np.ndarray:
-    """Global histogram equalisation over the 16384 raw levels (OpenCV `equalizeHist` rule).
+def histogram_equalization(raw: np.ndarray, bits: int = 14) -> np.ndarray:
+    """Global histogram equalisation over the raw levels (OpenCV `equalizeHist` rule).
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8; the lowest raw level present -> 0, the highest -> 255. For raw values that
       all lie in [0, 255] this equals `cv2.equalizeHist(raw.astype(np.uint8))` (except for a
       constant frame, which gives 128 here and the input value in OpenCV).
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     return _apply_lut(_equalizing_lut(_histogram(raw)), raw)
 
 
@@ -129,27 +131,28 @@ def _check_plateau(plateau: float | None, fn: str) -> None:
 
 
 def _plateau_lut(levels: np.ndarray, plateau: float | None) -> np.ndarray:
-    """Equalising LUT (16384,) of the histogram of `levels` clipped at `plateau` (None: the
+    """Equalising LUT (K,) of the histogram of `levels` clipped at `plateau` (None: the
     adaptive T_up of `double_plateau_thresholds`)."""
     hist = _histogram(levels)
     cap = double_plateau_thresholds(hist)[0] if plateau is None else plateau
     return _equalizing_lut(np.minimum(hist, cap))
 
 
-def plateau_he(raw: np.ndarray, plateau: float | None = None) -> np.ndarray:
+def plateau_he(raw: np.ndarray, plateau: float | None = None, bits: int = 14) -> np.ndarray:
     """Plateau histogram equalisation: clip every bin at `plateau`, then equalise.
 
     Limits the contrast a large uniform background (sky, road) takes from small objects;
     `plateau = inf` is plain HE, `plateau = 1` spreads the occupied levels evenly.
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       plateau: bin cap in pixels, > 0; None (default): the adaptive upper plateau T_up of the
         double-plateau rule (`double_plateau_thresholds`).
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     _check_plateau(plateau, "plateau_he")
     return _apply_lut(_plateau_lut(raw, plateau), raw)
 
@@ -167,7 +170,7 @@ def double_plateau_thresholds(hist: np.ndarray, window: int = 5) -> tuple[float,
          It is capped at T_up.
 
     Args:
-      hist: (K,) non-negative bin counts (K = 16384 for a raw frame).
+      hist: (K,) non-negative bin counts (one per raw level).
       window: odd size >= 3 of the neighbourhood that defines a local maximum.
     Returns:
       (t_up, t_down) floats; (0, 0) for an empty histogram.
@@ -187,7 +190,7 @@ def double_plateau_thresholds(hist: np.ndarray, window: int = 5) -> tuple[float,
 
 
 def _double_plateau_lut(levels: np.ndarray, window: int) -> np.ndarray:
-    """Equalising LUT (16384,) of the double-plateau-modified histogram of integer levels."""
+    """Equalising LUT (K,) of the double-plateau-modified histogram of integer levels."""
     hist = _histogram(levels).astype(np.float64)
     t_up, t_down = double_plateau_thresholds(hist, window)
     occupied = hist > 0
@@ -195,7 +198,7 @@ def _double_plateau_lut(levels: np.ndarray, window: int) -> np.ndarray:
     return _equalizing_lut(modified)
 
 
-def double_plateau_he(raw: np.ndarray, window: int = 5) -> np.ndarray:
+def double_plateau_he(raw: np.ndarray, window: int = 5, bits: int = 14) -> np.ndarray:
     """Double-plateau HE (Liang et al. 2012) with adaptive thresholds.
 
     Histogram modification before equalisation: empty bins stay 0; 0 < h <= T_down -> T_down
@@ -204,12 +207,13 @@ def double_plateau_he(raw: np.ndarray, window: int = 5) -> np.ndarray:
     `double_plateau_thresholds`.
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       window: local-maximum window of the T_up rule (odd >= 3).
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     return _apply_lut(_double_plateau_lut(raw, window), raw)
 
 
@@ -218,12 +222,13 @@ def clahe(
     clip_limit: float = 2.0,
     tiles: tuple[int, int] = (8, 8),
     levels: int | None = 1024,
+    bits: int = 14,
 ) -> np.ndarray:
     """Contrast-limited adaptive HE with OpenCV's CLAHE on a 16-bit image.
 
     OpenCV handles uint16 with a 65536-bin histogram per tile, caps each bin at
     max(1, int(clipLimit * tile_area / 65536)) pixels, spreads the excess over all 65536 bins and
-    maps through a LUT scaled to [0, 65535]. Fed raw 14-bit counts directly, the cap is 1 pixel
+    maps through a LUT scaled to [0, 65535]. Fed raw counts directly, the cap is 1 pixel
     at any usual tile size (`clip_limit` does nothing) and the excess spread over unreachable bins
     squeezes the output into a narrow grey band. We therefore:
       1. quantise the frame's span [lo, hi] to n = min(levels, hi - lo + 1) histogram levels
@@ -233,7 +238,7 @@ def clahe(
          pixels (at least 1): `clip_limit` times the mean count per level, the meaning it has
          for an 8-bit image (n = 256). With n levels the cap exceeds 1 only when a tile holds
          more than n / clip_limit pixels (default n = 1024, clip 2: tiles of >= 512 pixels,
-         e.g. 8x8 tiles on 256x320); a finer quantisation keeps more of the 14-bit precision
+         e.g. 8x8 tiles on 256x320); a finer quantisation keeps more of the raw precision
          but makes the limit coarser;
       3. return round(out * 255 / 65535).
     With levels=256 this is OpenCV's 8-bit CLAHE of the min-max-stretched frame, and for a frame
@@ -245,14 +250,15 @@ def clahe(
     behaviour and we keep it.
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       clip_limit: contrast limit, > 0 (2-3 usual).
       tiles: tile grid as (rows, cols).
       levels: histogram levels the frame's span is quantised to, >= 2, or None.
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     if not clip_limit > 0:
         raise ValueError(f"clahe: `clip_limit` must be > 0, got {clip_limit}")
     if levels is not None and levels < 2:
@@ -306,9 +312,9 @@ def _robust_span(hist: np.ndarray) -> float:
     return float(max(hi - lo, 1))
 
 
-def _to_levels(x: np.ndarray) -> np.ndarray:
-    """Float raw-count image -> integer levels in [0, 16383] for histogramming."""
-    return np.clip(np.rint(x), 0, NUM_BINS - 1).astype(np.intp)
+def _to_levels(x: np.ndarray, bits: int) -> np.ndarray:
+    """Float raw-count image -> integer levels in [0, 2^bits - 1] for histogramming."""
+    return np.clip(np.rint(x), 0, 2**bits - 1).astype(np.intp)
 
 
 def _dde_float(
@@ -318,13 +324,15 @@ def _dde_float(
     gain: float,
     detail_clip_rel: float,
     base_lut: Callable[[np.ndarray], np.ndarray],
+    bits: int,
 ) -> np.ndarray:
-    """DDE core on a float32 raw-count image; `base_lut(levels)` -> (16384,) LUT in [0, 255]."""
-    hist = _histogram(_to_levels(x))
+    """DDE core on a float32 raw-count image of `bits`-bit counts; `base_lut(levels)` -> a LUT
+    over the levels 0..levels.max() in [0, 255]."""
+    hist = _histogram(_to_levels(x, bits))
     span = _robust_span(hist)
     base = guided_filter(x, x, radius, (edge_rel * span) ** 2)
     detail = np.clip(x - base, -detail_clip_rel * span, detail_clip_rel * span)
-    base_levels = _to_levels(base)
+    base_levels = _to_levels(base, bits)
     base8 = np.take(base_lut(base_levels).astype(np.float32), base_levels)
     out = base8 + detail * np.float32(gain * (OUT_LEVELS - 1) / span)
     lo, hi = float(out.min()), float(out.max())
@@ -340,6 +348,7 @@ def dde(
     gain: float = 3.0,
     detail_clip_rel: float = 0.05,
     plateau: float | None = None,
+    bits: int = 14,
 ) -> np.ndarray:
     """Digital detail enhancement: guided-filter base/detail split, plateau HE on the base.
 
@@ -351,20 +360,21 @@ def dde(
     rescale to [0, 255].
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       radius: guided-filter box radius (window 2 radius + 1).
       edge_rel: guided-filter edge scale as a fraction of the 1-99 % span S.
       gain: detail amplification relative to a linear 1-99 % stretch.
       detail_clip_rel: detail clip as a fraction of S.
       plateau: base plateau in pixels, or None (adaptive T_up).
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     _check_plateau(plateau, "dde")
     return _dde_float(
         raw.astype(np.float32), radius, edge_rel, gain, detail_clip_rel,
-        lambda levels: _plateau_lut(levels, plateau),
+        lambda levels: _plateau_lut(levels, plateau), bits,
     )
 
 
@@ -413,8 +423,9 @@ def camera_like(
     detail_clip_rel: float = 0.05,
     cutoff: float = 0.35,
     window: int = 5,
+    bits: int = 14,
 ) -> np.ndarray:
-    """Our stand-in for a camera's built-in 14->8-bit chain (the paper's IRCBA).
+    """Our stand-in for a camera's built-in raw -> 8-bit chain (the paper's IRCBA).
 
     `frequency_denoise` (column-stripe removal + frequency-domain Gaussian low-pass) -> DDE
     (`dde`'s base/detail split) whose base is mapped by double-plateau HE (`double_plateau_he`'s
@@ -422,23 +433,25 @@ def camera_like(
     dataset has no camera output.
 
     Args:
-      raw: (H, W) uint16 raw 14-bit frame.
+      raw: (H, W) uint16 raw frame.
       radius, edge_rel, gain, detail_clip_rel: DDE parameters (see `dde`).
       cutoff: low-pass sigma in cycles/pixel (see `frequency_denoise`).
       window: local-maximum window of the double-plateau thresholds.
+      bits: bit depth of the counts, 14 or 16 (the accepted range 0..2^bits-1).
     Returns:
       (H, W) uint8.
     """
-    raw = _check_raw(raw)
+    raw = _check_raw(raw, bits)
     if raw.min() == raw.max():
         return np.full(raw.shape, MID_GREY, np.uint8)
     clean = frequency_denoise(raw, cutoff=cutoff)
     return _dde_float(
-        clean, radius, edge_rel, gain, detail_clip_rel, lambda lv: _double_plateau_lut(lv, window)
+        clean, radius, edge_rel, gain, detail_clip_rel, lambda lv: _double_plateau_lut(lv, window),
+        bits,
     )
 
 
-TONEMAPS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
+TONEMAPS: dict[str, Callable[..., np.ndarray]] = {
     "linear": linear_tail,
     "he": histogram_equalization,
     "clahe": clahe,
@@ -447,5 +460,6 @@ TONEMAPS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "dde": dde,
     "camera": camera_like,
 }
-"""Name -> function raw (H, W) uint16 -> (H, W) uint8, called with its default parameters
-('plateau' then uses the adaptive T_up of the double-plateau rule as its single plateau)."""
+"""Name -> function raw (H, W) uint16 -> (H, W) uint8, called with its default parameters and
+`bits=` the run's bit depth ('plateau' then uses the adaptive T_up of the double-plateau rule as
+its single plateau)."""

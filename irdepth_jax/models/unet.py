@@ -37,6 +37,19 @@ def max_pool_2x2(x):
     return x.reshape(b, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
 
 
+def pad_edge(x, pad_h: int, pad_w: int):
+    """(B, H, W, C) -> (B, H + pad_h, W + pad_w, C), repeating the last row and column.
+
+    The values of ``jnp.pad(x, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode='edge')`` without
+    its zero-size intermediate arrays, which the ONNX export (jax2onnx) mis-shapes.
+    """
+    if pad_h:
+        x = jnp.concatenate([x, jnp.repeat(x[:, -1:], pad_h, axis=1)], axis=1)
+    if pad_w:
+        x = jnp.concatenate([x, jnp.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
+    return x
+
+
 class Upsample2x(nn.Module):
     """Transposed 2x2 convolution with stride 2, no bias: (B, h, w, C) -> (B, 2h, 2w, features).
 
@@ -161,7 +174,7 @@ class MTSAUNet(nn.Module):
         height, width = x.shape[1:3]
         multiple = 2 ** len(cfg.widths)
         pad_h, pad_w = -height % multiple, -width % multiple
-        x = jnp.pad(x, ((0, 0), (0, pad_h), (0, pad_w), (0, 0)), mode="edge")
+        x = pad_edge(x, pad_h, pad_w)
         gcm = gradient_magnitude(x)  # inside the crop, equal to the GCM of the unpadded input
 
         skips = []

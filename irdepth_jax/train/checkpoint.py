@@ -13,16 +13,21 @@ A checkpoint step directory holds three items:
 Orbax writes each step into a temporary directory and renames it when complete, so a run killed
 during a save leaves a ``<step>.orbax-checkpoint-tmp-*`` directory that is never listed as a
 step: restore picks the last finalised one (and the manager removes the leftover on start).
+A save that cannot fit on the disk is refused before it starts (OSError ENOSPC), and a finished
+run whose weights hold NaN / inf is refused when it is loaded (`restore_items`).
 """
 
 from __future__ import annotations
 
+import errno
 import logging
 import os
+import shutil
 from collections.abc import Mapping
 from typing import Any
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
@@ -35,6 +40,19 @@ class CheckpointError(ValueError):
 def _not_read_only_notice(record: logging.LogRecord) -> bool:
     """Log filter: drops orbax's warning that a read_only=True manager's directory is read only."""
     return not str(record.msg).startswith("Given directory is read only")
+
+
+def _not_a_save_error_report(record: logging.LogRecord) -> bool:
+    """Log filter: drops reports, with tracebacks, of errors raised in orbax's code (its save
+    threads and asyncio tasks log each failure, then its secondary failures): orbax raises the
+    failure to the caller at the next save or `Checkpointer.wait`, where the CLI reports it in
+    one line (`train.loop` naming the disk when it is full; IRDEPTH_DEBUG=1: its traceback)."""
+    tb = record.exc_info[2] if record.exc_info else None
+    while tb is not None:
+        if tb.tb_frame.f_globals.get("__name__", "").startswith("orbax."):
+            return False
+        tb = tb.tb_next
+    return True
 
 
 class Checkpointer:
@@ -66,6 +84,9 @@ class Checkpointer:
         absl_log = logging.getLogger("absl")
         if read_only:
             absl_log.addFilter(_not_read_only_notice)
+        else:  # kept: a failed save is reported once it reaches the main thread
+            for name in ("absl", "asyncio"):  # orbax's threads, its asyncio tasks
+                logging.getLogger(name).addFilter(_not_a_save_error_report)
         try:
             self.manager = ocp.CheckpointManager(self.directory, options=options,
                                                  item_handlers=handlers)
@@ -83,7 +104,10 @@ class Checkpointer:
              force: bool = False) -> bool:
         """Saves `state` (host or replicated arrays) and `frozen` at `step` if due (or `force`).
 
-        Returns whether a save was started (saves are asynchronous; see `wait`).
+        Returns whether a save was started (saves are asynchronous; see `wait`). Raises the
+        error of the previous save if it failed, and OSError(ENOSPC) without starting the save
+        when the disk has less room than the last finished checkpoint takes, or before the
+        first than its arrays (rather than leaving orbax's threads to fail half-way).
         """
         items = state.checkpoint_items()
         meta = {**meta, "stage": self.stage, "step": int(step)}
@@ -92,7 +116,27 @@ class Checkpointer:
                 "meta": ocp.args.JsonSave(_jsonable(meta))}
         if frozen is not None:
             args["frozen"] = ocp.args.StandardSave(frozen)
+        if not (force or self.manager.should_save(int(step))):
+            return False
+        self.manager.wait_until_finished()  # as orbax's save would; the last step is final
+        self._check_room(sum(getattr(x, "nbytes", 0) for x in jax.tree.leaves((items, frozen))))
         return self.manager.save(int(step), force=force, args=ocp.args.Composite(**args))
+
+    def _check_room(self, array_bytes: int) -> None:
+        """OSError(ENOSPC) when the disk's free space is below what the next checkpoint needs
+        at least: the size of the last finished one (on disk, blocks included), or before the
+        first, `array_bytes` (the arrays alone)."""
+        last, need = self.latest_step(), array_bytes
+        if last is not None:
+            need = 0
+            for folder, _, names in os.walk(os.path.join(self.directory, str(last))):
+                for name in names:
+                    st = os.stat(os.path.join(folder, name))
+                    need += max(getattr(st, "st_blocks", 0) * 512, st.st_size)
+        free = shutil.disk_usage(self.directory).free
+        if free < need:
+            raise OSError(errno.ENOSPC, f"{os.strerror(errno.ENOSPC)}: a checkpoint takes "
+                          f"{need} bytes, {free} are free", self.directory)
 
     def read_meta(self, step: int | None = None) -> dict:
         """The JSON meta of `step` (latest by default); CheckpointError if there is none."""
@@ -174,9 +218,35 @@ def restore_items(directory: str, stage: str | tuple[str, ...], templates: Mappi
             _check_shapes(stored[name].tree, template, f"{reader.directory} step {step} {name}")
         restored = reader.manager.restore(step, args=ocp.args.Composite(**{
             name: ocp.args.StandardRestore(_abstract(t)) for name, t in templates.items()}))
-        return {name: restored[name] for name in templates}, meta
+        items = {name: restored[name] for name in templates}
+        _check_finite(items, f"{reader.directory} step {step}")
+        return items, meta
     finally:
         reader.close()
+
+
+def _check_finite(items: Mapping[str, Any], where: str) -> None:
+    """Raises CheckpointError when a floating-point value of `items` is NaN or inf (a diverged
+    run: a model that predicts NaN, which a depth PNG would store as 0, "no depth"), naming
+    how many of how many and in which top-level modules (``enc0``, ``depth_head``; a frozen
+    model's by its name, ``frozen/unet``)."""
+    bad: dict[str, int] = {}
+    total = 0
+    for path, leaf in jax.tree_util.tree_flatten_with_path(dict(items))[0]:
+        if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
+            continue
+        total += int(np.size(leaf))
+        count = int(np.size(leaf) - jnp.count_nonzero(jnp.isfinite(leaf)))
+        if count:
+            item, *names = [n for n in path_to_str(path).split("/")
+                            if n not in ("params", "batch_stats")]
+            module = "/".join(([] if item == "model" else [item]) + names[:1])
+            bad[module] = bad.get(module, 0) + count
+    if bad:
+        modules = ", ".join(f"{m} ({n})" for m, n in sorted(bad.items(), key=lambda x: -x[1]))
+        raise CheckpointError(f"checkpoint {where}: {sum(bad.values())} of {total} parameters "
+                              f"are not finite (NaN / inf), in {modules}: the run diverged; "
+                              "retrain it (e.g. with a lower learning rate)")
 
 
 def restore_model(directory: str, stage: str | tuple[str, ...], template_model: Mapping[str, Any],

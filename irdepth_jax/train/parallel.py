@@ -177,10 +177,10 @@ class DataParallel:
         return {k: float(_first_copy(v)) for k, v in metrics.items()}
 
     def global_batch_ok(self, batch_size: int, accum_steps: int = 1) -> None:
-        """Raises ValueError unless `batch_size` splits over devices and micro-batches."""
-        per = self.num_devices * accum_steps
-        if batch_size % per:
-            raise ValueError(f"batch size {batch_size} must be a multiple of devices x "
+        """Raises ValueError unless `batch_size` splits into `accum_steps` (>= 1) equal
+        micro-batches on each device."""
+        if accum_steps < 1 or batch_size < 1 or batch_size % (self.num_devices * accum_steps):
+            raise ValueError(f"batch size {batch_size} must be a positive multiple of devices x "
                              f"accumulation steps = {self.num_devices} x {accum_steps}")
 
 

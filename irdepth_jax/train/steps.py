@@ -47,7 +47,8 @@ from irdepth_jax.config import IGNORE_LABEL, Config
 from irdepth_jax.imaging.gradients import gradient_magnitude
 from irdepth_jax.losses import (cross_entropy_loss, multitask_loss, reconstruction_loss,
                                 silog_loss, sky_loss)
-from irdepth_jax.models.pipeline import depth_from_rgb, hsv_pseudo_rgb, sky_mask, unet_outputs
+from irdepth_jax.models.pipeline import (depth_from_rgb, hsv_pseudo_rgb, sky_mask, unet_input,
+                                         unet_outputs)
 from irdepth_jax.models.unet import MTSAUNet
 from irdepth_jax.train.state import TrainState
 
@@ -175,7 +176,8 @@ def stage1_loss_fn(cfg: Config, phase: str, axis_name: str | None = None) -> Los
         raise ValueError(f"unknown Stage I phase {phase!r}")
 
     def loss_fn(params, batch_stats, frozen, batch, rng):
-        out, updates = model.apply({"params": params, "batch_stats": batch_stats}, batch["raw14"],
+        x = unet_input(batch["raw14"], cfg, batch.get("brightness"))
+        out, updates = model.apply({"params": params, "batch_stats": batch_stats}, x,
                                    train=True, mutable=["batch_stats"])
         recon_t, sat_t = stage1_targets(batch["ir8"], s1.grad_target_scale)
         terms = {"recon": reconstruction_loss(out["recon"], recon_t, kind=s1.recon_loss),
@@ -203,7 +205,7 @@ def stage2_image(frozen: Any, batch: Any, cfg: Config) -> tuple[jax.Array, jax.A
     """
     outputs = None
     if frozen is not None and "unet" in frozen:
-        outputs = unet_outputs(frozen["unet"], batch["raw14"], cfg)
+        outputs = unet_outputs(frozen["unet"], batch["raw14"], cfg, batch.get("brightness"))
     if cfg.stage2.preprocessing == "hsv":
         rgb = hsv_pseudo_rgb(outputs, cfg.stage2.hue_mode)
     else:
@@ -222,7 +224,7 @@ def stage2_loss_fn(cfg: Config, ref_depth: float, axis_name: str | None = None) 
     `frozen` = ``{'unet': Stage I variables}`` (never differentiated), params = Depth Anything
     V2 params. Batch keys: ``raw14``, ``depth`` (B, H, W) metres, ``valid`` (B, H, W) bool,
     and ``image`` for non-HSV pre-processing. `ref_depth`: the sky's target depth
-    (0.99 x the largest training depth). `axis_name` is unused (no BatchNorm in Depth Anything
+    (`train.loop.sky_reference_depth`: 0.99 x the largest depth the head and metrics allow). `axis_name` is unused (no BatchNorm in Depth Anything
     V2; the frozen UNet runs in eval mode): it keeps the signature of `stage1_loss_fn`.
     """
     s2, d = cfg.stage2, cfg.data
