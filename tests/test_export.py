@@ -14,6 +14,10 @@ from irdepth_jax.data.rawio import read_frames
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.models.pipeline import raw_to_depth
 
+# In the slow suite (`python -m pytest -m slow`): its own Stage I + II training keeps the default
+# suite under 15 minutes on 2 cores; `irdepth export` checks every artifact when it is made.
+pytestmark = pytest.mark.slow
+
 QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 # The runs of tests/test_cli.py's `stage1_run` and `test_stage2_eval_and_predict` (same data,
 # config and steps): their compiled steps come from the test run's compilation cache.
