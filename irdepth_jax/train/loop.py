@@ -369,10 +369,10 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
                                           "why": "trained with stage1.seg_labels=none"}
     own_ds, own_idx = source.seg_frames("train")
     parts, described = [(own_ds, own_idx)], {"dataset": int(len(own_idx))}
+    train_ds, train_idx = source.frames("train")
+    size = tuple(np.shape(train_ds[int(train_idx[0])]["raw14"]))  # extra frames get this size
     if choice == "synthetic":
-        dataset, idx = source.frames("train")
-        height, width = np.shape(dataset[int(idx[0])]["raw14"])
-        extra = SyntheticLabeled(cfg.stage1.synthetic_labeled, height, width, cfg.seed,
+        extra = SyntheticLabeled(cfg.stage1.synthetic_labeled, *size, cfg.seed,
                                  cfg.data.raw_bits)
         parts.append((extra, np.arange(len(extra))))
         described["synthetic"] = len(extra)
@@ -397,11 +397,9 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
             "or stage1.seg_labels=none (then Stage II needs stage2.hue_mode=constant "
             "stage2.sky_loss=false)")
     if len(parts) > 1 and len(own_idx) == 0:
-        parts[0] = source.frames("train")
+        parts[0] = (train_ds, train_idx)
     if len(parts) == 1:
         return own_ds, np.asarray(own_idx), {"seg_labels": choice, "labeled_frames": labeled}
-    dataset, idx = source.frames("train")
-    size = tuple(np.shape(dataset[int(idx[0])]["raw14"]))
     mixed = ConcatFrames(parts, size=size)
     return mixed, np.arange(len(mixed)), {"seg_labels": choice, "labeled_frames": labeled,
                                           "labeled_by_source": described,
