@@ -15,7 +15,6 @@ import argparse
 import os
 
 import numpy as np
-
 import runner
 
 
@@ -33,7 +32,9 @@ def main(argv=None) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from irdepth_jax.evaluate import colorize_depth, depth_map, hsv_images, load_model
+    from irdepth_jax.models.pipeline import run_pipeline
+    from irdepth_jax.predict import colorize_depth
+    from irdepth_jax.train.variables import load_model
 
     ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,
                          data=args.data, cache=args.cache)
@@ -47,9 +48,9 @@ def main(argv=None) -> None:
             break
     samples = list(samples.values())
 
-    hsv, rgb = hsv_images(model["unet"], np.stack([s["raw14"] for s in samples]), cfg)
-    depth = np.asarray(depth_map(model["depth"], rgb, cfg))
-    hsv, rgb = np.asarray(hsv), np.asarray(rgb)
+    out = run_pipeline(model["unet"], model["depth"], np.stack([s["raw14"] for s in samples]),
+                       cfg)
+    hsv, rgb, depth = (np.asarray(out[k]) for k in ("hsv", "rgb", "depth"))
 
     titles = ("raw 14-bit (1-99 % stretch)", "H: semantics", "S: gradients", "V: texture",
               "pseudo-RGB", "predicted depth", "ground truth (LiDAR-like)")

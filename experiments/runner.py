@@ -5,7 +5,7 @@ to read) and calls `main`. The runner
 
 * builds (or finds) the dataset: by default a synthetic benchmark rendered once into
   ``CACHE/data/`` for the preset's data size; or a folder-format / MS2 directory (``--data``);
-* trains every run a row needs with `irdepth_jax.train.loop`, once per (config, seed): runs
+* trains every run a row needs with `irdepth_jax.train.stages`, once per (config, seed): runs
   live in ``CACHE/runs/<kind>-<hash of the full config>/`` and end with ``eval_test.json``
   (the test-split metrics). A run with that file is reused (by this and the other tables: the
   Stage I model of a seed is shared by tables 1-7); a run without it resumes from its last
@@ -152,7 +152,8 @@ class Context:
         import jax
 
         from irdepth_jax.config import apply_overrides, get_config
-        from irdepth_jax.train.loop import DataSource, RunError, resolve_raw_bits
+        from irdepth_jax.data.source import DataSource, resolve_raw_bits
+        from irdepth_jax.errors import RunError
 
         self.args, self.log = args, log
         try:
@@ -262,7 +263,7 @@ class Context:
         return result
 
     def _options(self, workdir: str, **kw):
-        from irdepth_jax.train.loop import RunOptions
+        from irdepth_jax.train.phase import RunOptions
 
         return RunOptions(workdir=workdir, resume=os.path.isdir(workdir), parallel="single",
                           progress=not self.args.no_progress, eval=False, **kw)
@@ -271,7 +272,7 @@ class Context:
         self.log(f"[{kind} seed {cfg.seed}] {what} {os.path.relpath(workdir, self.cache)}")
 
     def _stage1_i1(self, cfg) -> dict:
-        from irdepth_jax.train.loop import train_stage1
+        from irdepth_jax.train.stages import train_stage1
 
         workdir = self.run_dir("stage1_i1", cfg)
         cached = self._cached(workdir)
@@ -283,7 +284,7 @@ class Context:
         return self._finish(workdir, {"stage1": self._eval_stage1(cfg, unet)}, started)
 
     def _stage1(self, cfg) -> dict:
-        from irdepth_jax.train.loop import train_stage1
+        from irdepth_jax.train.stages import train_stage1
 
         workdir = self.run_dir("stage1", cfg)
         cached = self._cached(workdir)
@@ -304,8 +305,8 @@ class Context:
         return self._finish(workdir, {"stage1": self._eval_stage1(cfg, unet)}, started)
 
     def _stage2(self, cfg) -> dict:
-        from irdepth_jax.evaluate import evaluate_stage2
-        from irdepth_jax.train.loop import train_stage2
+        from irdepth_jax.evaluators import evaluate_stage2
+        from irdepth_jax.train.stages import train_stage2
 
         workdir = self.run_dir("stage2", cfg)
         cached = self._cached(workdir)
@@ -323,7 +324,7 @@ class Context:
         return self._finish(workdir, {"stage2": result}, started)
 
     def _train(self, fn, cfg, opts) -> dict:
-        from irdepth_jax.train.loop import Interrupted, RunError
+        from irdepth_jax.errors import Interrupted, RunError
 
         try:
             return fn(cfg, self.source, opts)
@@ -336,7 +337,7 @@ class Context:
     def _eval_stage1(self, cfg, unet) -> dict:
         """Stage I metrics: reconstruction on the depth test split, mIoU (tables 3 and 6) on the
         segmentation test split (the paper's independent 600/100/100 split)."""
-        from irdepth_jax.evaluate import evaluate_stage1
+        from irdepth_jax.evaluators import evaluate_stage1
 
         return self._eval(evaluate_stage1, cfg, unet,
                           seg_frames=self.source.seg_frames(EVAL_SPLIT))

@@ -129,7 +129,7 @@ def _parse_size(text: str) -> tuple[int, int]:
 
 
 def _run_options(args, workdir: str, resume: bool):
-    from irdepth_jax.train.loop import RunOptions
+    from irdepth_jax.train.phase import RunOptions
 
     return RunOptions(workdir=workdir, resume=resume, parallel=args.parallel,
                       devices=args.devices, steps=args.steps, stop_at=args.stop_at,
@@ -180,7 +180,7 @@ def _ctrl_c_while_training():
     """
     import signal
 
-    from irdepth_jax.train.loop import writing_checkpoint
+    from irdepth_jax.train.phase import writing_checkpoint
 
     state = {"aborting": False, "noted": False}
 
@@ -212,7 +212,9 @@ def cmd_train(args) -> int:
     that fails before recording anything leaves no trace; Ctrl-C names the last checkpoint."""
     import jax
 
-    from irdepth_jax.train.loop import DataSource, Interrupted, train_stage1, train_stage2
+    from irdepth_jax.data.source import DataSource
+    from irdepth_jax.errors import Interrupted
+    from irdepth_jax.train.stages import train_stage1, train_stage2
     from irdepth_jax.train.workdir_lock import claim_workdir, holds_run, last_checkpoint
 
     cfg = load_config(args.preset, args.config, _overrides(args.overrides))
@@ -271,12 +273,21 @@ def cmd_eval(args) -> int:
 
 
 def cmd_predict(args) -> int:
-    from irdepth_jax.evaluate import predict_files
+    from irdepth_jax.predict import predict_files
 
     _check_out_dir(args.out)
+    if args.depth_png and not args.video:
+        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
+                       "every frame's PNGs are written anyway)")
     written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
-                            raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict)
-    print(f"wrote {len(written)} files to {args.out}")
+                            raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
+                            batch_size=args.batch_size, video=args.video,
+                            depth_png_frames=args.depth_png, fps=args.fps,
+                            progress=not args.no_progress)
+    videos = sum(f.endswith(".mp4") for f in written)
+    what = f"{videos} videos and {len(written) - videos} files" if args.video else \
+        f"{len(written)} files"
+    print(f"wrote {what} to {args.out}")
     return 0
 
 
@@ -296,54 +307,27 @@ def cmd_export(args) -> int:
 
 
 def cmd_quickstart(args) -> int:
-    """synth -> stage1 (I-1, I-2) -> stage2 -> eval on the tiny preset, with before/after."""
-    from irdepth_jax.data.folder import write_synthetic_dataset
-    from irdepth_jax.evaluate import evaluate_run, evaluate_stage1, evaluate_stage2
-    from irdepth_jax.train.loop import (DataSource, RunOptions, init_depth, init_unet,
-                                        make_parallel, resolve_raw_bits, train_stage1,
-                                        train_stage2)
+    """synth -> stage1 (I-1, I-2) -> stage2 -> eval (`workflow.train_and_evaluate`), with the
+    untrained -> trained change."""
+    from irdepth_jax.workflow import improvement_lines, train_and_evaluate
 
     work = args.workdir
     if os.path.isdir(work) and os.listdir(work):
         raise CliError(f"--workdir {work} exists and is not empty; choose another directory")
     cfg = load_config(args.preset, None, _overrides(args.overrides))
-    start = time.perf_counter()
-    d = cfg.data
-    data = os.path.join(work, "data")
-    print(f"[1/4] synthetic dataset: {d.num_frames} frames ({d.num_labeled} labelled), "
-          f"{d.height}x{d.width} -> {data}")
-    write_synthetic_dataset(data, d.num_frames, d.num_labeled, d.height, d.width, seed=cfg.seed,
-                            progress=not args.no_progress)
-    source = DataSource(data, raw_bits=cfg.data.raw_bits)
-    cfg = resolve_raw_bits(cfg, source)  # the evaluations below use it too
-    common = dict(devices=args.devices, progress=not args.no_progress)
-    print("[2/4] Stage I: I-1 reconstruction pre-training, I-2 soft multi-task")
-    s1 = train_stage1(cfg, source, RunOptions(os.path.join(work, "stage1"), **common))
-    print("[3/4] Stage II: Depth Anything V2 on the HSV pseudo-RGB")
-    train_stage2(cfg, source, RunOptions(os.path.join(work, "stage2"), **common,
-                                              stage1_checkpoint=os.path.join(work, "stage1")))
-    print("[4/4] evaluation on the test split")
-    dp = make_parallel(RunOptions(work, **common), cfg.stage2.batch_size)
-    dataset, test = source.frames("test")
-    before1 = evaluate_stage1(cfg, init_unet(cfg), dataset, test, dp,
-                              seg_frames=source.seg_frames("test"))["all"]
-    before2 = evaluate_stage2(cfg, s1["unet"], init_depth(cfg)[0], dataset, test, dp)["all"]
-    result = evaluate_run(os.path.join(work, "stage2"), data, "test", dp=dp)
-    after1, after2 = result["stage1"]["all"], result["stage2"]["all"]
-    print(result["markdown"])
-    print("untrained -> trained (test split):")
-    print(f"  Stage I  PSNR {before1['psnr']:.2f} -> {after1['psnr']:.2f} dB, "
-          f"SSIM {before1['ssim']:.3f} -> {after1['ssim']:.3f}, "
-          f"mIoU {before1['miou']:.3f} -> {after1['miou']:.3f}")
-    print(f"  Stage II d1 {before2['d1']:.3f} -> {after2['d1']:.3f}, "
-          f"AbsRel {before2['abs_rel']:.3f} -> {after2['abs_rel']:.3f}")
-    print(f"quickstart finished in {time.perf_counter() - start:.0f} s; data, runs and tables "
+    result = train_and_evaluate(cfg, work, devices=args.devices, progress=not args.no_progress)
+    print(result["tables"])
+    print("\n".join(improvement_lines(result)))
+    print(f"quickstart finished in {result['seconds']:.0f} s; data, runs and tables "
           f"({work}/stage2/eval_test.md) are in {work}")
     return 0
 
 
 # --------------------------------------------------------------------------- parser
 def build_parser() -> argparse.ArgumentParser:
+    from irdepth_jax.config import available_presets
+    from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
+
     parser = argparse.ArgumentParser(
         prog="irdepth",
         description="Monocular depth from raw 14-bit thermal frames: MTSA-UNet -> HSV -> "
@@ -390,8 +374,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "logged in metrics.jsonl).",
         epilog=EPILOG_OVERRIDES)
     p.add_argument("stage", choices=("stage1", "stage2"), help="which stage")
-    p.add_argument("--preset", default="tiny", choices=("tiny", "small", "paper"),
-                   help="config preset (default tiny)")
+    p.add_argument("--preset", default="tiny", choices=available_presets(),
+                   help="config preset, irdepth_jax/configs/NAME.py (default tiny)")
     p.add_argument("--config", help="config file: .py defining get_config() / config, or .json "
                                     "(nested like config.json; applied over the preset)")
     p.add_argument("--data", required=True, help="dataset directory (folder format or MS2)")
@@ -462,7 +446,12 @@ def build_parser() -> argparse.ArgumentParser:
                                    "frame whose prediction is NaN / inf stops the run with an "
                                    "error naming its input file before its files are written "
                                    "(a NaN depth is never written as 0, 'no depth'); the "
-                                   "frames before it are complete.")
+                                   "frames before it are complete. With --video, each "
+                                   "sequence (a folder of frames, a multi-page TIFF, an "
+                                   "(N, H, W) .npy, a FLIR .seq) becomes NAME.mp4: raw "
+                                   "tone-mapped | pseudo-RGB of the HSV image | coloured "
+                                   "depth, side by side (needs pip install "
+                                   "'irdepth_jax[video]').")
     p.add_argument("--checkpoint", required=True,
                    help="a Stage II (or Stage I) workdir or checkpoint directory")
     p.add_argument("--out", required=True, help="output directory")
@@ -475,8 +464,18 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--strict", action="store_true",
                    help="fail on an 8-bit or colour file in a folder (default: skip it, named "
                         "in one summary line)")
+    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH, metavar="N",
+                   help=f"frames per model call (default {DEFAULT_BATCH}); frames are grouped "
+                        "by size, and the outputs do not depend on N")
+    p.add_argument("--video", action="store_true",
+                   help="write one MP4 per input sequence instead of per-frame images")
+    p.add_argument("--depth-png", action="store_true",
+                   help="with --video: also write each frame's 16-bit NAME_depth.png")
+    p.add_argument("--fps", type=float, default=DEFAULT_FPS,
+                   help=f"frame rate of the videos (default {DEFAULT_FPS:g})")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
     compile_cache_flag(p)
+    progress_flag(p)
     p.set_defaults(func=cmd_predict, overrides=[])
 
     p = sub.add_parser("export", help="a Stage II model as one ONNX or StableHLO file",
@@ -510,8 +509,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "A few minutes on a laptop CPU.")
     p.add_argument("--workdir", default="irdepth_quickstart",
                    help="new directory for data, runs and tables (default ./irdepth_quickstart)")
-    p.add_argument("--preset", default="tiny", choices=("tiny", "small", "paper"),
-                   help="config preset (default tiny)")
+    p.add_argument("--preset", default="tiny", choices=available_presets(),
+                   help="config preset, irdepth_jax/configs/NAME.py (default tiny)")
     p.add_argument("--devices", type=int, help="number of devices (default: all)")
     compile_cache_flag(p)
     progress_flag(p)
@@ -532,8 +531,8 @@ def main(argv: list[str] | None = None) -> int:
     if extra:
         args.overrides = list(args.overrides) + extra
     from irdepth_jax.data.folder import DatasetError
+    from irdepth_jax.errors import Interrupted, RunError
     from irdepth_jax.train.checkpoint import CheckpointError
-    from irdepth_jax.train.loop import Interrupted, RunError
 
     try:
         _setup_jax(args)

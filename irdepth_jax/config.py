@@ -1,4 +1,4 @@
-"""Configuration: frozen dataclasses and the presets `tiny`, `small` and `paper`.
+"""Configuration: frozen dataclasses, and `get_config` for the presets in `irdepth_jax/configs/`.
 
 Every hyper-parameter, ablation switch and path the library uses lives here, so that each
 ablation of the paper is a `key=value` override (see `apply_overrides`):
@@ -6,13 +6,14 @@ ablation of the paper is a `key=value` override (see `apply_overrides`):
     cfg = get_config("tiny")
     cfg = apply_overrides(cfg, ["unet.use_rgg=false", "stage2.sky_loss=false"])
 
-Presets:
+Presets are files, one each, `irdepth_jax/configs/NAME.py` defining `get_config()` (its
+docstring says what the preset is for, the command that uses it and how long it takes):
   * `paper`: the paper's MTSA-UNet widths (32, 64, 128, 256, bottleneck 512, 6 classes),
-    Depth Anything V2 `vits`, 50 epochs per stage, the paper's batch sizes.
-  * `small`: a few hundred thousand UNet parameters and a small ViT; minutes on a CPU, used for
-    the committed synthetic-benchmark results.
-  * `tiny`: a few thousand UNet parameters and a 2-block ViT; seconds on a CPU, used by the
-    tests and the quickstart.
+    Depth Anything V2 `vits`, 50 epochs per stage, the paper's batch sizes; meant for a GPU.
+  * `small`: an 8-16-32-64 UNet and a small ViT; minutes on a CPU, used for the committed
+    synthetic-benchmark results.
+  * `tiny`: a 9.4k-parameter UNet and a 4-block ViT; seconds on a CPU, used by the tests and
+    the quickstart.
 """
 
 from __future__ import annotations
@@ -162,55 +163,28 @@ class Config:
     keep_checkpoints: int = 3
 
 
-def _paper() -> Config:
-    return Config(name="paper")
+def available_presets() -> tuple[str, ...]:
+    """The preset names, sorted: the modules of the `irdepth_jax.configs` package."""
+    from irdepth_jax import configs
 
-
-def _small() -> Config:
-    # Sized so that the seven experiment tables x 3 seeds run in about half an hour on 2 CPU
-    # cores. Stage II rate: from a random-init ViT, 1e-4 (head 1e-3) drove the metric head's
-    # sigmoid into saturation (prediction ~max_depth everywhere, zero gradient) within 10 steps
-    # on 2 of 3 seeds; 3e-5 trained on all of them.
-    return Config(
-        name="small",
-        unet=UNetConfig(widths=(8, 16, 32, 64), bottleneck=128),
-        depth=DepthConfig(encoder="small", input_height=112, input_width=140),
-        data=DataConfig(height=128, width=160, num_frames=480, num_labeled=160),
-        stage1=Stage1Config(batch_size=8, epochs_i1=2, epochs_i2=4, accum_steps=1),
-        stage2=Stage2Config(batch_size=8, epochs=2, learning_rate=3e-5),
-        log_every=10,
-        eval_every=200,
-        checkpoint_every=200,
-    )
-
-
-def _tiny() -> Config:
-    # Tuned so that `irdepth quickstart` shows clear learning in a few minutes on 2 CPU cores:
-    # per-image percentile input scaling, and AdamW instead of AdaDelta for Stage I (AdaDelta's
-    # per-coordinate step starts near sqrt(eps) = 1e-3 and needs far more than ~200 updates).
-    return Config(
-        name="tiny",
-        unet=UNetConfig(widths=(4, 4, 4, 4), bottleneck=8, raw_scale="percentile"),
-        depth=DepthConfig(encoder="tiny", input_height=56, input_width=70),
-        data=DataConfig(height=64, width=80, num_frames=96, num_labeled=48),
-        stage1=Stage1Config(batch_size=4, epochs_i1=10, epochs_i2=8, accum_steps=2,
-                            optimizer="adamw", learning_rate=3e-3, stage12_learning_rate=5e-4),
-        stage2=Stage2Config(batch_size=4, epochs=10, learning_rate=2e-4),
-        log_every=5,
-        eval_every=50,
-        checkpoint_every=50,
-    )
-
-
-PRESETS = {"paper": _paper, "small": _small, "tiny": _tiny}
+    return configs.available()
 
 
 def get_config(preset: str = "paper") -> Config:
-    """Returns a fresh `Config` for a preset name (`paper`, `small`, `tiny`)."""
-    try:
-        return PRESETS[preset]()
-    except KeyError:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)}") from None
+    """Returns a fresh `Config` for a preset name: `irdepth_jax.configs.<preset>.get_config()`.
+
+    Raises ValueError listing the available presets for an unknown name.
+    """
+    import importlib
+
+    names = available_presets()
+    if preset not in names:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {list(names)}")
+    cfg = importlib.import_module(f"irdepth_jax.configs.{preset}").get_config()
+    if not isinstance(cfg, Config):
+        raise TypeError(f"irdepth_jax/configs/{preset}.py: get_config() returned "
+                        f"{type(cfg).__name__}, not a Config")
+    return cfg
 
 
 _TYPE_EXAMPLES = {"bool": False, "int": 0, "float": 0.0, "str": ""}
@@ -338,3 +312,12 @@ def from_dict(d: dict) -> Config:
         else:
             raise ValueError(f"unknown config key {key!r}")
     return Config(**kwargs)
+
+
+def resolved_raw_bits(cfg: Config) -> int:
+    """`cfg.data.raw_bits` as 14 or 16; 'auto' must have been resolved from the data first."""
+    bits = cfg.data.raw_bits
+    if bits not in (14, 16):
+        raise ValueError(f"data.raw_bits {bits!r}: expected 14 or 16 ('auto' is resolved from "
+                         "the training frames when a run starts)")
+    return int(bits)

@@ -32,9 +32,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.config import CLASS_NAMES, Config, to_dict
+from irdepth_jax.config import CLASS_NAMES, Config, resolved_raw_bits, to_dict
 from irdepth_jax.fileio import make_dirs, write_bytes
-from irdepth_jax.models.pipeline import raw_to_depth, resolved_raw_bits
+from irdepth_jax.models.pipeline import raw_to_depth
 
 FORMATS = ("onnx", "stablehlo")
 STABLEHLO_PLATFORMS = ("cpu", "cuda")
@@ -206,7 +206,7 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
       ExportError (one line) for a bad argument or model, a converter failure, or a check
       over `TOLERANCE` x max depth (nothing is written then); RunError from `load_model`.
     """
-    from irdepth_jax.evaluate import load_model
+    from irdepth_jax.train.variables import load_model
 
     if fmt not in FORMATS:
         raise ExportError(f"--format {fmt}: choose one of {', '.join(FORMATS)}")

@@ -39,3 +39,44 @@ def realdata() -> pathlib.Path:
         pytest.skip(f"real thermal test files not found at {REALDATA} (they sit beside the "
                     "repository in the project's shared folder, not in a clone)")
     return REALDATA
+
+
+# --------------------------------------------------------------------------- shared trained runs
+def _read_only(path, what):
+    """Yields `path`; at the end of the session, fails if a test changed a file under it."""
+    from trained_runs import Fingerprint
+
+    before = Fingerprint(path)
+    yield path
+    changed = before.changes()
+    assert not changed, (f"a test changed the shared {what} {path} (copy it with "
+                         f"trained_runs.copy_run first): {changed[:10]}")
+
+
+@pytest.fixture(scope="session")
+def synthetic_data(tmp_path_factory):
+    """The shared synthetic dataset (`trained_runs.DATA`: 24 frames of 32x48, 12 labelled)."""
+    from trained_runs import write_data
+
+    yield from _read_only(write_data(tmp_path_factory.mktemp("shared_data") / "ds"), "dataset")
+
+
+@pytest.fixture(scope="session")
+def stage1_run(synthetic_data, tmp_path_factory):
+    """Workdir of the shared Stage I run: 4 + 4 steps on `synthetic_data` (`trained_runs.QUICK`:
+    1 device, a checkpoint at the end of each phase)."""
+    from trained_runs import train
+
+    work = tmp_path_factory.mktemp("shared_stage1") / "straight"
+    train("stage1", synthetic_data, work)
+    yield from _read_only(work, "Stage I run")
+
+
+@pytest.fixture(scope="session")
+def stage2_run(synthetic_data, stage1_run, tmp_path_factory):
+    """Workdir of the shared Stage II run: 2 steps on `synthetic_data` from `stage1_run`."""
+    from trained_runs import train
+
+    work = tmp_path_factory.mktemp("shared_stage2") / "s2"
+    train("stage2", synthetic_data, work, "--stage1-checkpoint", stage1_run)
+    yield from _read_only(work, "Stage II run")

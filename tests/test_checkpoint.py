@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from irdepth_jax.config import get_config
-from irdepth_jax.train.checkpoint import CheckpointError, Checkpointer, restore_model
+from irdepth_jax.train.checkpoint import Checkpointer, CheckpointError, restore_model
 from irdepth_jax.train.state import TrainState, stage2_optimizer
 
 
@@ -92,7 +92,7 @@ def test_wrong_stage_and_shape_are_named(tmp_path):
     with pytest.raises(CheckpointError,
                        match=r"model: batch_stats/BatchNorm_0/mean has shape \(4,\).*\(8,\)"):
         Checkpointer(str(tmp_path), "stage2").restore(make_state(width=8))
-    with pytest.raises(CheckpointError, match="stage1_i1 or stage1_i2"):
+    with pytest.raises(CheckpointError, match="expected 'stage1_i1' or 'stage1_i2'"):
         restore_model(str(tmp_path), ("stage1_i1", "stage1_i2"),
                       make_state().checkpoint_items()["model"])
     with pytest.raises(CheckpointError, match="no finished checkpoint"):

@@ -9,20 +9,22 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+import trained_runs
 from da_params import random_params
 from ms2_layout import official_sequences, partial_ms2
 
-from irdepth_jax import cli, evaluate
+from irdepth_jax import cli, evaluators
 from irdepth_jax.config import get_config
-from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.data.source import DataSource
 from irdepth_jax.models.depth_anything import depth_anything_config
-from irdepth_jax.train import loop
+from irdepth_jax.train import phase, runlog
 from irdepth_jax.train.checkpoint import Checkpointer, restore_model
-from irdepth_jax.train.loop import WALL_CLOCK_FIELDS, init_unet
+from irdepth_jax.train.runlog import WALL_CLOCK_FIELDS
 from irdepth_jax.train.state import TrainState
+from irdepth_jax.train.variables import init_unet
 from irdepth_jax.weights import to_official_state_dict
 
-QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
+QUICK = trained_runs.QUICK  # also imported by test_cli_guards and test_cli_failures
 
 
 def run(argv, capsys):
@@ -32,19 +34,10 @@ def run(argv, capsys):
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    path = tmp_path_factory.mktemp("data") / "ds"
-    write_synthetic_dataset(path, n=24, labeled=12, height=32, width=48, seed=1, progress=False)
-    return path
-
-
-@pytest.fixture(scope="module")
-def stage1_run(data, tmp_path_factory):
-    """A straight 4 + 4 step Stage I run (used by several tests)."""
-    work = tmp_path_factory.mktemp("s1") / "straight"
-    assert cli.main(["train", "stage1", "--data", str(data), "--workdir", str(work),
-                     "--steps", "4", *QUICK]) == 0
-    return work
+def data(synthetic_data):
+    """The session's shared dataset (conftest.py); `stage1_run` (a straight 4 + 4 step Stage I
+    run) and `stage2_run` are the session's shared runs on it, read-only."""
+    return synthetic_data
 
 
 def read_metrics(workdir):
@@ -119,7 +112,8 @@ def test_not_a_dataset(tmp_path, capsys):
     one_line_error(code, err, str(tmp_path / "nothing"))
 
 
-def test_existing_workdir_is_not_overwritten(data, stage1_run, capsys):
+def test_existing_workdir_is_not_overwritten(data, stage1_run, tmp_path, capsys):
+    stage1_run = trained_runs.copy_run(stage1_run, tmp_path / "straight")
     before = (stage1_run / "config.json").read_text()
     metrics = (stage1_run / "metrics.jsonl").read_text()
     code, _, err = run(["train", "stage1", "--data", data, "--workdir", stage1_run, "--steps",
@@ -194,7 +188,7 @@ def test_resume_continues_exactly(data, stage1_run, tmp_path, capsys):
 
 
 def test_ctrl_c_saves_a_checkpoint(data, stage1_run, tmp_path, capsys, monkeypatch):
-    real = loop.device_batch
+    real = phase.device_batch
     calls = {"n": 0}
 
     def interrupting(batch, phase, cfg):
@@ -203,7 +197,7 @@ def test_ctrl_c_saves_a_checkpoint(data, stage1_run, tmp_path, capsys, monkeypat
             signal.raise_signal(signal.SIGINT)
         return real(batch, phase, cfg)
 
-    monkeypatch.setattr(loop, "device_batch", interrupting)
+    monkeypatch.setattr(phase, "device_batch", interrupting)
     work = tmp_path / "ctrl_c"
     args = ["train", "stage1", "--data", data, "--workdir", work, "--steps", "4", *QUICK]
     code, _, err = run(args, capsys)
@@ -211,18 +205,16 @@ def test_ctrl_c_saves_a_checkpoint(data, stage1_run, tmp_path, capsys, monkeypat
     reader = Checkpointer(str(work / "checkpoints" / "stage1_i1"), "stage1_i1")
     assert reader.latest_step() == 2
     reader.close()
-    monkeypatch.setattr(loop, "device_batch", real)
+    monkeypatch.setattr(phase, "device_batch", real)
     code, _, err = run(args + ["--resume"], capsys)
     assert code == 0, err
     assert read_metrics(work) == read_metrics(stage1_run)
 
 
 # --------------------------------------------------------------------------- stage 2 + tools
-def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys, monkeypatch):
-    work = tmp_path / "s2"
-    code, out, err = run(["train", "stage2", "--data", data, "--workdir", work, "--steps", "2",
-                          "--stage1-checkpoint", stage1_run, *QUICK], capsys)
-    assert code == 0, err
+def test_stage2_eval_and_predict(data, stage2_run, tmp_path, capsys, monkeypatch):
+    """The shared Stage II run (2 steps from `stage1_run`), evaluated into a copy of it."""
+    work = trained_runs.copy_run(stage2_run, tmp_path / "s2")
     rows = read_metrics(work)
     assert [r["step"] for r in rows] == [1, 2]
     assert {"silog", "sky", "loss", "lr_backbone", "lr_head"} <= set(rows[0])
@@ -235,22 +227,22 @@ def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys, monkeypatch
     assert {"d1", "abs_rel", "rmse", "silog"} <= set(table["stage2"]["all"])
     assert {"psnr", "ssim", "entropy", "miou"} <= set(table["stage1"]["all"])
     assert "| all |" in (work / "eval_test.md").read_text() and "abs_rel" in out
-    test_frames = len(loop.DataSource(str(data)).frames("test")[1])
+    test_frames = len(DataSource(str(data)).frames("test")[1])
     assert table["protocol"] == {"stride": 1, "frames": test_frames, "align": "none",
                                  "clamp": [1e-3, 80.0]}
     assert table["stage2"]["all"]["nonfinite_images"] == 0 and "WARNING" not in err
 
     # A model predicting NaN is reported loudly, not scored (d1 = 0, silog = 0 before).
-    monkeypatch.setitem(evaluate._PREDICT, "stage2",
+    monkeypatch.setitem(evaluators._PREDICT, "stage2",
                         lambda cfg, variables, batch: {"depth": jnp.full(batch["raw14"].shape,
                                                                          jnp.nan)})
-    evaluate._eval_step.cache_clear()
+    evaluators._eval_step.cache_clear()
     try:
         code, out, err = run(["eval", "--workdir", work, "--data", data, "--split", "test",
                               "--align", "median", "--stride", "2", "--out", tmp_path / "nan"],
                              capsys)
     finally:
-        evaluate._eval_step.cache_clear()
+        evaluators._eval_step.cache_clear()
     assert code == 0, err
     nan = json.loads((tmp_path / "nan" / "eval_test.json").read_text())
     frames = len(range(test_frames)[0:-1:2])
@@ -263,7 +255,7 @@ def test_stage2_eval_and_predict(data, stage1_run, tmp_path, capsys, monkeypatch
          f"{nan['stage2']['all']['nonfinite_pixels']} pixels of {frames} of {frames} images; "
          "their metrics are NaN")]
 
-    raw = np.asarray(loop.DataSource(str(data)).frames("test")[0][0]["raw14"])
+    raw = np.asarray(DataSource(str(data)).frames("test")[0][0]["raw14"])
     frames = tmp_path / "frames"
     frames.mkdir()
     cv2.imwrite(str(frames / "a.png"), raw)
@@ -373,7 +365,7 @@ def test_stage2_says_what_it_loaded_from_a_released_checkpoint(data, tmp_path, c
                          "scales its output by 4"}
     for key, value in said.items():
         assert f"irdepth: stage2: {key}: {value}" in err.splitlines()
-    assert {"step": 0, "stage": "stage2", "kind": "info", **said} in loop.read_metrics(
+    assert {"step": 0, "stage": "stage2", "kind": "info", **said} in runlog.read_metrics(
         os.path.join(work, "metrics.jsonl"))
     ckpt.unlink()  # the run's own checkpoint is all its evaluation needs
     code, _, err = run(["eval", "--workdir", work, "--data", data, "--split", "test"], capsys)

@@ -21,14 +21,14 @@ import optax
 import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
-from irdepth_jax import cli, evaluate
+from irdepth_jax import cli
 from irdepth_jax.config import get_config
-from irdepth_jax.data.folder import write_synthetic_dataset
 from irdepth_jax.fileio import mount_point
-from irdepth_jax.train import loop
+from irdepth_jax.models import pipeline
+from irdepth_jax.train import runlog, variables
 from irdepth_jax.train.checkpoint import Checkpointer, restore_model
-from irdepth_jax.train.loop import init_unet
 from irdepth_jax.train.state import TrainState
+from irdepth_jax.train.variables import init_unet
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
 TINY = get_config("tiny")
@@ -36,11 +36,9 @@ SAVE_EVERY_STEP = [*QUICK, "checkpoint_every=1"]
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    """test_cli's dataset (same sizes: the compiled steps are shared)."""
-    path = tmp_path_factory.mktemp("data") / "ds"
-    write_synthetic_dataset(path, n=24, labeled=12, height=32, width=48, seed=1, progress=False)
-    return path
+def data(synthetic_data):
+    """The session's shared dataset (conftest.py), test_cli's: the compiled steps are shared."""
+    return synthetic_data
 
 
 def train(data, work, steps=4):
@@ -50,11 +48,12 @@ def train(data, work, steps=4):
 
 
 @pytest.fixture(scope="module")
-def reference(data, tmp_path_factory):
-    """An uninterrupted 4 + 4 step Stage I run that saves a checkpoint at every step."""
-    work = tmp_path_factory.mktemp("reference") / "w"
-    assert cli.main([str(a) for a in train(data, work)]) == 0
-    return work
+def reference(stage1_run):
+    """The uninterrupted 4 + 4 step Stage I run: the session's shared `stage1_run` (conftest.py,
+    read-only), the same run as `train(data, work)` but for its checkpoint interval (a
+    checkpoint at the end of each phase, not at every step; checkpoints do not change what is
+    trained)."""
+    return stage1_run
 
 
 def checkpoint_bytes(directory):
@@ -101,11 +100,12 @@ def depth_model(monkeypatch):
     so that its PNGs do not compress: the write path without training a model."""
     cfg = dataclasses.replace(TINY, stage2=dataclasses.replace(
         TINY.stage2, preprocessing="he", sky_loss=False))
-    monkeypatch.setattr(evaluate, "load_model",
+    monkeypatch.setattr(variables, "load_model",
                         lambda path, overrides=(): (cfg, "stage2", {"unet": None, "depth": {}}))
     rng = np.random.default_rng(0)
-    monkeypatch.setattr(evaluate, "depth_map", lambda params, rgb, cfg: rng.uniform(
-        1, 80, rgb.shape[:3]).astype(np.float32))
+    monkeypatch.setattr(pipeline, "run_pipeline", lambda unet, params, raw, cfg, image: {
+        "depth": rng.uniform(1, 80, image.shape[:3]).astype(np.float32), "rgb": image,
+        "hsv": None})
 
 
 @pytest.fixture
@@ -164,18 +164,25 @@ def test_predict_on_a_full_tmpfs(depth_model, frames, tmp_path, capsys):
         assert 0 < len(check_outputs(out, err)) < 16
 
 
-def test_predict_refuses_a_nan_prediction(depth_model, frames, tmp_path, capsys, monkeypatch):
-    calls = {"n": 0}
+@pytest.mark.parametrize("batch", ["1", "4"])
+def test_predict_refuses_a_nan_prediction(depth_model, frames, tmp_path, capsys, monkeypatch,
+                                          batch):
+    """The second frame (b) predicts NaN: a's files are written, b's and the rest are not,
+    whether b shares a batch with a or not."""
+    seen = {"frames": 0}
 
-    def depth(params, rgb, cfg):
-        calls["n"] += 1
-        values = np.full(rgb.shape[:3], 5.0, np.float32)
-        values[:, :2] = np.nan if calls["n"] == 2 else 5.0
-        return values
+    def predict(unet, params, raw, cfg, image):
+        values = np.full(image.shape[:3], 5.0, np.float32)
+        for i in range(len(values)):
+            if seen["frames"] + i == 1:
+                values[i, :2] = np.nan
+        seen["frames"] += len(values)
+        return {"depth": values, "rgb": image, "hsv": None}
 
-    monkeypatch.setattr(evaluate, "depth_map", depth)
+    monkeypatch.setattr(pipeline, "run_pipeline", predict)
     out = tmp_path / "pred"
-    code, _, err = run(["predict", "--checkpoint", tmp_path, "--out", out, frames], capsys)
+    code, _, err = run(["predict", "--checkpoint", tmp_path, "--out", out, "--batch-size", batch,
+                        frames], capsys)
     one_line_error(code, err, f"{frames / 'b.npy'}: the model predicted non-finite depth "
                               "(NaN / inf) on 160 of 5120 values of frame 'b'")
     assert sorted(os.listdir(out)) == ["a_depth.png", "a_depth_color.png"]
@@ -224,7 +231,7 @@ def test_train_on_a_full_disk_names_the_disk_and_the_last_checkpoint(data, tmp_p
     """The disk fills while metrics.jsonl gets step 3 (half the line is written): one line
     naming the disk and checkpoint 2, and every finished checkpoint restores (the kill tests
     show that --resume continues exactly from such a state)."""
-    real_write = loop.RunLog.write
+    real_write = runlog.RunLog.write
 
     def write(self, record):
         if (record["stage"], record["step"]) == ("stage1_i1", 3):
@@ -233,7 +240,7 @@ def test_train_on_a_full_disk_names_the_disk_and_the_last_checkpoint(data, tmp_p
             raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), self.path)
         real_write(self, record)
 
-    monkeypatch.setattr(loop.RunLog, "write", write)
+    monkeypatch.setattr(runlog.RunLog, "write", write)
     work = tmp_path / "w"
     code, _, err = run(train(data, work), capsys)
     directory = work / "checkpoints" / "stage1_i1"

@@ -16,16 +16,14 @@ import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
 from irdepth_jax.data.folder import write_synthetic_dataset
-from irdepth_jax.train import checkpoint, loop
+from irdepth_jax.train import checkpoint, phase, stages
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
 
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
-    """test_cli's dataset (same sizes: the compiled steps are shared)."""
-    path = tmp_path_factory.mktemp("data") / "ds"
-    write_synthetic_dataset(path, n=24, labeled=12, height=32, width=48, seed=1, progress=False)
-    return path
+def data(synthetic_data):
+    """The session's shared dataset (conftest.py), test_cli's: the compiled steps are shared."""
+    return synthetic_data
 
 
 def train(data, work, *extra):
@@ -135,7 +133,7 @@ def test_failure_before_the_first_step_leaves_nothing(data, tmp_path, capsys, mo
     def broken(*args, **kwargs):
         raise ValueError("optimizer broke")
 
-    monkeypatch.setattr(loop, "stage1_optimizer", broken)
+    monkeypatch.setattr(stages, "stage1_optimizer", broken)
     fresh, mine = tmp_path / "fresh", tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("keep me")
@@ -187,7 +185,7 @@ def test_stale_lock_and_resume_or_start(data, tmp_path, capsys):
 def test_second_ctrl_c_while_saving_lets_the_save_finish(data, tmp_path, capsys, monkeypatch):
     """Ctrl-C at step 2, again inside the stop's save and inside the final wait for it: the
     checkpoint is completed and named, without a traceback."""
-    real_batch, real_meta = loop.device_batch, checkpoint._jsonable
+    real_batch, real_meta = phase.device_batch, checkpoint._jsonable
     real_wait = ocp.CheckpointManager.wait_until_finished
     sent = {"batch": 0, "save": False, "wait": False}
 
@@ -209,7 +207,7 @@ def test_second_ctrl_c_while_saving_lets_the_save_finish(data, tmp_path, capsys,
             signal.raise_signal(signal.SIGINT)
         return real_wait(self)
 
-    monkeypatch.setattr(loop, "device_batch", batch)
+    monkeypatch.setattr(phase, "device_batch", batch)
     monkeypatch.setattr(checkpoint, "_jsonable", meta)
     monkeypatch.setattr(ocp.CheckpointManager, "wait_until_finished", wait)
     work = tmp_path / "w"
@@ -226,7 +224,7 @@ def test_second_ctrl_c_while_saving_lets_the_save_finish(data, tmp_path, capsys,
 def test_second_ctrl_c_aborts_and_torn_metrics_lines(data, tmp_path, capsys, monkeypatch):
     """A second Ctrl-C outside a save aborts at once, naming the last checkpoint; --resume then
     drops the torn last line a kill leaves in metrics.jsonl; a torn line elsewhere is an error."""
-    real = loop.device_batch
+    real = phase.device_batch
     calls = {"n": 0}
 
     def batch(*args):
@@ -236,7 +234,7 @@ def test_second_ctrl_c_aborts_and_torn_metrics_lines(data, tmp_path, capsys, mon
             signal.raise_signal(signal.SIGINT)
         return real(*args)
 
-    monkeypatch.setattr(loop, "device_batch", batch)
+    monkeypatch.setattr(phase, "device_batch", batch)
     work = tmp_path / "w"
     args = train(data, work, "--steps", "4", "checkpoint_every=1")
     code, _, err = run(args, capsys)

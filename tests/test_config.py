@@ -1,8 +1,21 @@
 import dataclasses
+import importlib
+import json
+import pathlib
 
 import pytest
 
-from irdepth_jax.config import apply_overrides, from_dict, get_config, to_dict
+from irdepth_jax.config import (
+    Config,
+    apply_overrides,
+    available_presets,
+    from_dict,
+    get_config,
+    to_dict,
+)
+
+PRESET_DICTS = pathlib.Path(__file__).parent / "data" / "preset_configs.json"
+"""to_dict(get_config(name)) of each preset, as the code before presets became files made them."""
 
 
 def test_paper_preset_has_paper_widths():
@@ -46,3 +59,49 @@ def test_configs_are_frozen():
     cfg = get_config("tiny")
     with pytest.raises(dataclasses.FrozenInstanceError):
         cfg.seed = 1
+
+
+def test_presets_are_the_configs_package():
+    assert available_presets() == ("paper", "small", "tiny")
+    with pytest.raises(ValueError, match=r"unknown preset 'huge'.*'paper', 'small', 'tiny'"):
+        get_config("huge")
+    for bad in ("", "__init__", "configs", "tiny.x", "irdepth_jax.config"):
+        with pytest.raises(ValueError, match="unknown preset"):
+            get_config(bad)
+
+
+@pytest.mark.parametrize("name", ["paper", "small", "tiny"])
+def test_presets_unchanged(name):
+    """Every field, its value and its JSON type (1 vs 1.0, true vs 1) as before the move."""
+    expected = json.loads(PRESET_DICTS.read_text())[name]
+    cfg = get_config(name)
+    assert isinstance(cfg, Config) and cfg.name == name
+    got = json.dumps(to_dict(cfg), sort_keys=True, indent=1)
+    assert got == json.dumps(expected, sort_keys=True, indent=1)
+    assert from_dict(expected) == cfg
+    assert get_config(name) is not cfg  # a fresh object each call
+
+
+def test_every_preset_is_recorded():
+    assert sorted(json.loads(PRESET_DICTS.read_text())) == list(available_presets())
+
+
+@pytest.mark.parametrize("name", ["paper", "small", "tiny"])
+def test_preset_docstring_names_its_command(name):
+    module = importlib.import_module(f"irdepth_jax.configs.{name}")
+    doc = module.get_config.__doc__ or ""
+    assert f"--preset {name}" in doc
+    assert {"tiny": "irdepth quickstart", "small": "python experiments/table",
+            "paper": "irdepth train stage1"}[name] in doc
+    assert "Measured" in doc
+
+
+def test_cli_preset_choices_come_from_the_package():
+    from irdepth_jax.cli import build_parser
+
+    parser = build_parser()
+    for argv in (["train", "stage1", "--data", "d", "--workdir", "w"], ["quickstart"]):
+        for name in available_presets():
+            assert parser.parse_args([*argv, "--preset", name]).preset == name
+        with pytest.raises(SystemExit):
+            parser.parse_args([*argv, "--preset", "huge"])

@@ -5,6 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from da_params import random_params
 
 from irdepth_jax.models.depth_anything import (
     IMAGENET_MEAN,
@@ -17,8 +18,6 @@ from irdepth_jax.models.depth_anything import (
 )
 from irdepth_jax.models.dinov2 import _cubic_weights, cubic_resize_matrix, interpolate_pos_embed
 from irdepth_jax.weights import expected_shapes
-
-from da_params import random_params
 
 
 @pytest.fixture(scope="module")

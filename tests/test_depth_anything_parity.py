@@ -12,6 +12,8 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 F = torch.nn.functional
 
+from torch_reference import hf_forward, hf_to_official, random_hf_model  # noqa: E402
+
 from irdepth_jax.models.depth_anything import (  # noqa: E402
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -24,8 +26,6 @@ from irdepth_jax.models.depth_anything import (  # noqa: E402
 from irdepth_jax.models.dinov2 import interpolate_pos_embed  # noqa: E402
 from irdepth_jax.models.dpt import resize_bilinear_align_corners  # noqa: E402
 from irdepth_jax.weights import load_depth_anything  # noqa: E402
-
-from torch_reference import hf_forward, hf_to_official, random_hf_model  # noqa: E402
 
 pytestmark = pytest.mark.parity
 REL_TOL = 1e-4  # max |ours - torch| <= REL_TOL * max |torch|, per output and per intermediate

@@ -4,13 +4,13 @@
 import jax
 import numpy as np
 import pytest
+from da_params import random_params
 
 from irdepth_jax.config import apply_overrides, get_config
+from irdepth_jax.errors import RunError
 from irdepth_jax.models.depth_anything import depth_anything_config
-from irdepth_jax.train.loop import RunError, init_depth, random_depth
+from irdepth_jax.train.variables import init_depth, random_depth
 from irdepth_jax.weights import to_official_state_dict
-
-from da_params import random_params
 
 torch = pytest.importorskip("torch")
 

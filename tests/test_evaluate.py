@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from irdepth_jax import evaluate
+from irdepth_jax import evaluate, evaluators
 from irdepth_jax.config import get_config
 from irdepth_jax.train.parallel import DataParallel
 
@@ -19,10 +19,10 @@ def raw_as_depth(cfg, variables, batch):
 
 @pytest.fixture
 def fake_model(monkeypatch):
-    evaluate._eval_step.cache_clear()  # compiled steps are cached per (dp, kind, cfg)
-    monkeypatch.setitem(evaluate._PREDICT, "stage2", raw_as_depth)
+    evaluators._eval_step.cache_clear()  # compiled steps are cached per (dp, kind, cfg)
+    monkeypatch.setitem(evaluators._PREDICT, "stage2", raw_as_depth)
     yield
-    evaluate._eval_step.cache_clear()
+    evaluators._eval_step.cache_clear()
 
 
 def frame(raw, condition):
@@ -37,9 +37,9 @@ def test_evaluate_stage2_aligns_and_reports_nonfinite_predictions(fake_model):
     dataset = [frame(np.full((4, 5), 1000), "day"), frame(np.full((4, 5), 2000), "day"),
                frame(broken, "night")]
     cfg, dp = get_config("tiny"), DataParallel("single")
-    plain = evaluate.evaluate_stage2(cfg, None, {}, dataset, [0, 1, 2], dp)
+    plain = evaluators.evaluate_stage2(cfg, None, {}, dataset, [0, 1, 2], dp)
     assert plain["day"]["abs_rel"] == pytest.approx(0.5)
-    median = evaluate.evaluate_stage2(cfg, None, {}, dataset, [0, 1, 2], dp, align="median")
+    median = evaluators.evaluate_stage2(cfg, None, {}, dataset, [0, 1, 2], dp, align="median")
     assert median["day"]["abs_rel"] == pytest.approx(0.0) and median["day"]["d1"] == 1.0
     for group in ("all", "night"):
         assert math.isnan(median[group]["abs_rel"]) and math.isnan(median[group]["d1"])
@@ -58,7 +58,7 @@ def test_evaluate_stage2_aligns_and_reports_nonfinite_predictions(fake_model):
     assert header.endswith("| silog | nonfinite_pixels | nonfinite_images | images |")
     assert "| night | - |" in text and "| 1 | 1 | 1 |" in text
 
-    clean = evaluate.evaluate_stage2(cfg, None, {}, dataset, [0, 1], dp, align="median")
+    clean = evaluators.evaluate_stage2(cfg, None, {}, dataset, [0, 1], dp, align="median")
     result.update(stage2=clean, protocol=dict(result["protocol"], stride=1, frames=2))
     text = evaluate.format_tables(result)
     assert evaluate.nonfinite_warning(result) is None

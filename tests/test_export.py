@@ -8,20 +8,12 @@ import jax
 import numpy as np
 import pytest
 
-from irdepth_jax import cli, evaluate, export
-from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax import cli, export
 from irdepth_jax.data.rawio import read_frames
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.models.pipeline import raw_to_depth
+from irdepth_jax.train import variables as model_io
 
-# In the slow suite (`python -m pytest -m slow`): its own Stage I + II training keeps the default
-# suite under 15 minutes on 2 cores; `irdepth export` checks every artifact when it is made.
-pytestmark = pytest.mark.slow
-
-QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
-# The runs of tests/test_cli.py's `stage1_run` and `test_stage2_eval_and_predict` (same data,
-# config and steps): their compiled steps come from the test run's compilation cache.
-STAGE_STEPS = {"stage1": "4", "stage2": "2"}
 SHAPE = (2, 40, 72)  # export shape: not a multiple of 16, so the UNet's edge padding is in it
 REAL_FRAME = "ms2_sample/left/000011_thr.png"  # 256x640, counts 3211-5756
 
@@ -33,27 +25,15 @@ def run(argv, capsys):
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
-    """Workdirs of a 4 + 4 step Stage I and a 2 step Stage II run (tiny, 32x48 frames)."""
-    root = tmp_path_factory.mktemp("export")
-    write_synthetic_dataset(root / "ds", n=24, labeled=12, height=32, width=48, seed=1,
-                            progress=False)
-    for stage, extra in (("stage1", []), ("stage2", ["--stage1-checkpoint", root / "stage1"])):
-        assert cli.main([str(a) for a in ["train", stage, "--data", root / "ds", "--workdir",
-                                          root / stage, "--steps", STAGE_STEPS[stage], *extra,
-                                          *QUICK]]) == 0
-    return root
-
-
-@pytest.fixture(scope="module")
-def model(runs):
-    """(config, variables) of the Stage II run, as `irdepth export` loads them."""
-    cfg, _, variables = evaluate.load_model(str(runs / "stage2"))
+def model(stage2_run):
+    """(config, variables) of the shared Stage II run (conftest), as `irdepth export` loads
+    them."""
+    cfg, _, variables = model_io.load_model(str(stage2_run))
     return cfg, variables
 
 
 @pytest.fixture(scope="module", params=["stablehlo", "onnx"])
-def exported(request, runs, tmp_path_factory):
+def exported(request, stage2_run, tmp_path_factory):
     """(format, artifact path, its metadata) of `irdepth export` at `SHAPE`, checked at export
     time on rendered frames."""
     fmt = request.param
@@ -62,7 +42,7 @@ def exported(request, runs, tmp_path_factory):
         pytest.importorskip("onnxruntime")
     out = tmp_path_factory.mktemp("artifacts") / f"model.{fmt}"
     batch, height, width = SHAPE
-    assert cli.main([str(a) for a in ["export", "--checkpoint", runs / "stage2", "--format", fmt,
+    assert cli.main([str(a) for a in ["export", "--checkpoint", stage2_run, "--format", fmt,
                                       "--height", height, "--width", width, "--batch", batch,
                                       "--out", out]]) == 0
     return fmt, out, json.loads(out.with_name(out.name + ".json").read_text())
@@ -121,10 +101,11 @@ def test_real_ms2_frame(exported, model, realdata):
     assert max_difference(exported, model, raw) <= export.TOLERANCE * cfg.depth.max_depth
 
 
-def test_sample_file_and_refusals(runs, model, tmp_path, capsys, monkeypatch):
+def test_sample_file_and_refusals(stage1_run, stage2_run, model, tmp_path, capsys,
+                                  monkeypatch):
     batch, height, width = SHAPE
     out = tmp_path / "m.stablehlo"
-    args = ["export", "--checkpoint", runs / "stage2", "--format", "stablehlo", "--height",
+    args = ["export", "--checkpoint", stage2_run, "--format", "stablehlo", "--height",
             height, "--width", width, "--batch", batch, "--out", out]
     stack = tmp_path / "frames.npy"  # one frame: cycled to the batch
     np.save(stack, render_scene(3, "day", height, width)["raw14"][None])
@@ -149,8 +130,8 @@ def test_sample_file_and_refusals(runs, model, tmp_path, capsys, monkeypatch):
     np.save(wrong, np.zeros((height, width + 1), np.uint16))
     one_line_error(args + ["--sample", wrong], str(wrong), f"{height}x{width + 1}",
                    f"{height}x{width}")
-    one_line_error([runs / "stage1" if a == runs / "stage2" else a for a in args],
-                   str(runs / "stage1"), "Stage I model")
+    one_line_error([stage1_run if a == stage2_run else a for a in args],
+                   str(stage1_run), "Stage I model")
     # an artifact that disagrees with JAX is refused, and nothing is written
     out.unlink(), (tmp_path / "m.stablehlo.json").unlink()
     monkeypatch.setattr(export, "run_artifact", lambda fmt, data, raw: np.full(raw.shape, 1e3))
@@ -163,6 +144,6 @@ def test_sample_file_and_refusals(runs, model, tmp_path, capsys, monkeypatch):
         export.depth_function(he, variables, "RUN")
     # onnxruntime's CPU kernels take no bfloat16 Einsum: such a model is refused before converting
     bf16 = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, dtype="bfloat16"))
-    monkeypatch.setattr(evaluate, "load_model", lambda path: (bf16, "stage2", variables))
+    monkeypatch.setattr(model_io, "load_model", lambda path: (bf16, "stage2", variables))
     with pytest.raises(export.ExportError, match="depth.dtype=bfloat16, .* use --format stablehlo"):
         export.export_model("RUN", "onnx", height, width, batch, str(out))

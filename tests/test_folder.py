@@ -6,9 +6,18 @@ import cv2
 import numpy as np
 import pytest
 
-from irdepth_jax.data.folder import (DEPTH_SPLIT, SEG_SPLIT, DatasetError, FolderDataset,
-                                     encode_depth, split_counts, synthetic_manifest,
-                                     write_manifest, write_sample, write_synthetic_dataset)
+from irdepth_jax.data.folder import (
+    DEPTH_SPLIT,
+    SEG_SPLIT,
+    DatasetError,
+    FolderDataset,
+    encode_depth,
+    split_counts,
+    synthetic_manifest,
+    write_manifest,
+    write_sample,
+    write_synthetic_dataset,
+)
 
 
 def _sample(rng, h=12, w=16, labeled=True, rgb=True):

@@ -10,8 +10,9 @@ from ms2_layout import official_sequences, partial_ms2
 
 from irdepth_jax.data.folder import DatasetError, DatasetWarning
 from irdepth_jax.data.ms2 import MissingSequencesError, MS2Dataset, subsample
+from irdepth_jax.data.source import DataSource
+from irdepth_jax.errors import RunError
 from irdepth_jax.imaging.tonemap import camera_like
-from irdepth_jax.train.loop import DataSource, RunError
 
 LISTS = {"train": ["_2021-08-06-10-59-33", "_2021-08-13-22-16-02"], "val": ["_2021-08-06-16-19-00"],
          "test_day": ["_2021-08-06-11-37-46"], "test_night": ["_2021-08-13-21-58-13"],

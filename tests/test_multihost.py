@@ -9,7 +9,6 @@ import sys
 import jax
 import numpy as np
 import pytest
-
 from test_parallel import run
 
 WORKER = r'''

@@ -1,8 +1,7 @@
 """Executes notebooks/*.ipynb on tiny settings (nbclient, kernel python3) into temporary copies.
 
-The quickstart reuses the experiment cache of tests/test_experiments.py (same session path, so
-its tiny --quick Stage I / II runs are not trained twice); the ablations notebook reads the
-committed results in experiments/results/.
+The quickstart trains its QUICK run with `workflow.train_and_evaluate` (24 frames of 32x48, two
+steps per phase); the ablations notebook reads the committed results in experiments/results/.
 """
 
 from __future__ import annotations
@@ -12,7 +11,7 @@ import os
 import nbformat
 import pytest
 from nbclient import NotebookClient
-from test_experiments import load_runner, quick_cache_dir
+from test_experiments import load_runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NOTEBOOKS = os.path.join(REPO, "notebooks")
@@ -48,10 +47,10 @@ def test_committed_without_outputs(name):
     assert any("parameters" in c.metadata.get("tags", []) for c in code)
 
 
-def test_quickstart_runs(tmp_path_factory, monkeypatch, tmp_path):
+def test_quickstart_runs(monkeypatch, tmp_path):
     monkeypatch.setenv("IRDEPTH_NB_PRESET", "tiny")
     monkeypatch.setenv("IRDEPTH_NB_QUICK", "1")
-    monkeypatch.setenv("IRDEPTH_NB_CACHE", quick_cache_dir(tmp_path_factory))
+    monkeypatch.setenv("IRDEPTH_NB_WORKDIR", str(tmp_path / "run"))
     nb = execute("quickstart.ipynb", tmp_path)
     assert images(nb) >= 3  # scenes, H/S/V + pseudo-RGB, depth maps
     out = text(nb)

@@ -1,5 +1,6 @@
-"""raw -> MTSA-UNet -> HSV -> RGB -> Depth Anything V2 as pure jit-able functions; Stage II loss."""
-
+"""raw -> MTSA-UNet -> HSV -> RGB -> Depth Anything V2: `run_pipeline`, the one inference path,
+checked against an independent composition (OpenCV colour conversion and resize, a hand-written
+align-corners bilinear), and the Stage II loss that trains through it."""
 
 import cv2
 import jax
@@ -8,14 +9,14 @@ import numpy as np
 import pytest
 
 from irdepth_jax.config import SKY_CLASS, apply_overrides, get_config
+from irdepth_jax.data.source import host_image
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.imaging.color import CLASS_HUES
 from irdepth_jax.imaging.tonemap import clahe
-from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD
-from irdepth_jax.models.pipeline import (depth_from_rgb, depth_input, hsv_pseudo_rgb,
-                                         predict_depth, sky_mask, unet_outputs, unet_to_hsv)
-from irdepth_jax.train.loop import host_image, init_unet, random_depth
+from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD, DepthAnythingV2, network_input
+from irdepth_jax.models.pipeline import depth_model_config, raw_to_depth, run_pipeline, unet_outputs, unet_to_hsv
 from irdepth_jax.train.steps import stage2_loss_fn
+from irdepth_jax.train.variables import init_unet, random_depth
 
 CFG = get_config("tiny")
 
@@ -27,6 +28,26 @@ def fake_outputs(seed=0, shape=(2, 8, 10)):
             "recon": jnp.asarray(rng.uniform(size=shape + (1,)), jnp.float32)}
 
 
+def opencv_rgb(hsv: np.ndarray) -> np.ndarray:
+    """HSV (B, H, W, 3) in [0, 1] -> RGB by OpenCV (hue in degrees)."""
+    return np.stack([cv2.cvtColor(np.stack([h[..., 0] * 360, h[..., 1], h[..., 2]], -1)
+                                  .astype(np.float32), cv2.COLOR_HSV2RGB) for h in hsv])
+
+
+def align_corners_bilinear(x: np.ndarray, size) -> np.ndarray:
+    """(B, H, W) -> (B, h, w), output o reads input o * (in - 1) / (out - 1), by hand."""
+    def axis(a, n_out, ax):
+        n_in = a.shape[ax]
+        src = np.arange(n_out) * ((n_in - 1) / (n_out - 1))
+        lo = np.floor(src).astype(int)
+        hi = np.minimum(lo + 1, n_in - 1)
+        shape = [1] * a.ndim
+        shape[ax] = n_out
+        t = (src - lo).reshape(shape)
+        return np.take(a, lo, ax) * (1 - t) + np.take(a, hi, ax) * t
+    return axis(axis(x, size[0], 1), size[1], 2)
+
+
 def test_hsv_channels_and_rgb_match_opencv():
     out = fake_outputs()
     hsv = np.asarray(jax.jit(unet_to_hsv, static_argnums=1)(out, "argmax"))
@@ -34,25 +55,18 @@ def test_hsv_channels_and_rgb_match_opencv():
     np.testing.assert_allclose(hsv[..., 0], np.asarray(CLASS_HUES)[labels], atol=1e-6)
     np.testing.assert_allclose(hsv[..., 1], out["saturation"][..., 0])
     np.testing.assert_allclose(hsv[..., 2], out["recon"][..., 0])
-    rgb = np.asarray(jax.jit(hsv_pseudo_rgb, static_argnums=1)(out, "soft"))
-    soft = np.asarray(unet_to_hsv(out, "soft"))
-    for b in range(soft.shape[0]):
-        ref = cv2.cvtColor(np.stack([soft[b, ..., 0] * 360, soft[b, ..., 1], soft[b, ..., 2]],
-                                    -1).astype(np.float32), cv2.COLOR_HSV2RGB)
-        np.testing.assert_allclose(rgb[b], ref, atol=1e-5)
 
 
-def test_sky_mask_and_depth_input():
-    logits = np.zeros((1, 2, 2, 6), np.float32)
-    logits[0, 0, 0, SKY_CLASS] = 5
-    logits[0, 1, 1, 3], logits[0, 1, 0, 4] = 5, 1
-    logits[0, 0, 1, SKY_CLASS], logits[0, 0, 1, 2] = 1, 2
-    np.testing.assert_array_equal(sky_mask(logits)[0], [[True, False], [False, False]])
+def test_network_input_is_opencv_bicubic_then_imagenet_normalisation():
+    """One pre-processing for training and inference: OpenCV's INTER_CUBIC (a = -0.75, the
+    official transform), down and up, then (x - mean) / std."""
     rgb = np.random.default_rng(0).uniform(size=(2, 28, 42, 3)).astype(np.float32)
-    same = depth_input(rgb, (28, 42))
-    expected = (rgb - np.asarray(IMAGENET_MEAN)) / np.asarray(IMAGENET_STD)
-    np.testing.assert_allclose(same, expected, rtol=1e-5, atol=1e-6)
-    assert depth_input(rgb, (14, 70)).shape == (2, 14, 70, 3)
+    norm = lambda x: (x - np.asarray(IMAGENET_MEAN)) / np.asarray(IMAGENET_STD)  # noqa: E731
+    run = jax.jit(network_input, static_argnums=1)
+    np.testing.assert_allclose(run(rgb, (28, 42)), norm(rgb), rtol=1e-5, atol=1e-6)
+    for size in ((14, 70), (56, 28)):
+        ref = np.stack([cv2.resize(x, size[::-1], interpolation=cv2.INTER_CUBIC) for x in rgb])
+        np.testing.assert_allclose(run(rgb, size), norm(ref), atol=2e-5)
 
 
 @pytest.fixture(scope="module")
@@ -66,18 +80,46 @@ def frames():
     return {k: np.stack([s[k] for s in scenes]) for k in ("raw14", "depth", "valid", "seg")}
 
 
-def test_predict_depth_jit(models, frames):
+def test_run_pipeline_equals_an_independent_composition(models, frames):
+    """UNet -> HSV (ours) -> RGB by OpenCV -> resize by OpenCV -> the ViT -> hand-written
+    align-corners resize: the same depth as the jitted pipeline."""
     unet, da = models
-    run = jax.jit(predict_depth, static_argnums=3)
-    out = run(unet, da, frames["raw14"], CFG)
-    assert out["depth"].shape == (2, 32, 48) and out["rgb"].shape == (2, 32, 48, 3)
+    out = run_pipeline(unet, da, frames["raw14"], CFG)
     depth = np.asarray(out["depth"])
+    assert depth.shape == (2, 32, 48) and out["rgb"].shape == (2, 32, 48, 3)
     assert np.all(depth > 0) and np.all(depth < CFG.depth.max_depth)
-    # the same as composing the pieces by hand
-    manual = jax.jit(lambda u, d, raw: depth_from_rgb(d, hsv_pseudo_rgb(
-        unet_outputs(u, raw, CFG), CFG.stage2.hue_mode), CFG))(unet, da, frames["raw14"])
+
+    outputs = unet_outputs(unet, frames["raw14"], CFG)
+    hsv = np.asarray(unet_to_hsv(outputs, CFG.stage2.hue_mode))
+    rgb = opencv_rgb(hsv)
+    np.testing.assert_allclose(out["rgb"], rgb, atol=1e-4)  # OpenCV float32 hue sectors
+    np.testing.assert_allclose(out["hsv"], hsv, atol=1e-4)  # jit vs eager UNet
+    size = (CFG.depth.input_height, CFG.depth.input_width)
+    x = np.stack([cv2.resize(r, size[::-1], interpolation=cv2.INTER_CUBIC) for r in rgb])
+    x = (x - np.asarray(IMAGENET_MEAN)) / np.asarray(IMAGENET_STD)
+    small = DepthAnythingV2(depth_model_config(CFG)).apply({"params": da}, jnp.asarray(x))
+    manual = align_corners_bilinear(np.asarray(small, np.float64), (32, 48))
     np.testing.assert_allclose(depth, manual, rtol=1e-4, atol=1e-4)
-    np.testing.assert_array_equal(out["sky"], np.asarray(out["seg"]) == SKY_CLASS)
+    seg = np.argmax(np.asarray(outputs["seg_logits"]), -1)
+    np.testing.assert_array_equal(out["seg"], seg)
+    np.testing.assert_array_equal(out["sky"], seg == SKY_CLASS)
+    # the export's function: the same program less the unused outputs (XLA fuses it otherwise)
+    np.testing.assert_allclose(raw_to_depth(unet, da, frames["raw14"], CFG), depth, rtol=1e-6)
+
+
+def test_run_pipeline_of_a_stage1_model_and_of_a_baseline(models, frames):
+    unet, da = models
+    stage1 = run_pipeline(unet, None, frames["raw14"], CFG)
+    assert stage1["depth"] is None and stage1["hsv"].shape == (2, 32, 48, 3)
+    cfg = apply_overrides(CFG, ["stage2.preprocessing=clahe", "stage2.sky_loss=false"])
+    image = host_image({"raw14": frames["raw14"]}, "clahe")
+    out = run_pipeline(None, da, None, cfg, image=image)
+    assert out["hsv"] is None and out["sky"] is None
+    np.testing.assert_allclose(out["rgb"], image / np.float32(255), atol=1e-7)
+    with pytest.raises(ValueError, match="pass it as `image`"):
+        run_pipeline(None, da, None, cfg)
+    with pytest.raises(ValueError, match="needs the Stage I model"):
+        run_pipeline(None, da, frames["raw14"], CFG)
 
 
 def test_stage2_loss_freezes_stage1_and_uses_its_sky(models, frames):
@@ -93,7 +135,7 @@ def test_stage2_loss_freezes_stage1_and_uses_its_sky(models, frames):
         jax.value_and_grad(total, argnums=(0, 1), has_aux=True))(da, {"unet": unet})
     assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(g_frozen))
     assert max(float(jnp.abs(g).max()) for g in jax.tree.leaves(g_da)) > 0
-    out = jax.jit(predict_depth, static_argnums=3)(unet, da, frames["raw14"], CFG)
+    out = run_pipeline(unet, da, frames["raw14"], CFG)
     pred, sky = np.asarray(out["depth"]), np.asarray(out["sky"])
     per_image = [np.abs(pred[b][sky[b]] / ref - 1).mean() for b in range(2) if sky[b].any()]
     expected_sky = np.mean(per_image) if per_image else 0.0

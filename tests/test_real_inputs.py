@@ -10,10 +10,12 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
+from trained_runs import DATA, copy_run
 
 from irdepth_jax import cli
 from irdepth_jax.data.folder import write_synthetic_dataset
-from irdepth_jax.evaluate import load_model, predict_files
+from irdepth_jax.predict import predict_files
+from irdepth_jax.train.variables import load_model
 
 QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 H, W = 32, 48
@@ -40,11 +42,12 @@ def outputs(folder):
 
 
 @pytest.fixture(scope="module")
-def run16(tmp_path_factory):
+def run16(synthetic_data, tmp_path_factory):
     """Stage I-1 (2 steps; I-2 adds nothing here) on a folder dataset of a 16-bit camera
-    (counts up to ~32000), trained with data.raw_bits=auto."""
-    data = tmp_path_factory.mktemp("data16") / "ds"
-    write_synthetic_dataset(data, n=24, labeled=12, height=H, width=W, seed=1, progress=False)
+    (counts up to ~32000: the session's shared dataset, copied, its counts x 4), trained with
+    data.raw_bits=auto (its own run: the shared ones are 14-bit)."""
+    data = copy_run(synthetic_data, tmp_path_factory.mktemp("data16") / "ds")
+    assert (H, W) == (DATA["height"], DATA["width"])
     for png in (data / "raw14").iterdir():
         raw = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
         cv2.imwrite(str(png), raw * np.uint16(4))

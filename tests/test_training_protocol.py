@@ -8,19 +8,21 @@ import os
 
 import numpy as np
 import pytest
+from trained_runs import QUICK, STEPS, copy_run
 
 from irdepth_jax import cli
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.augment import augment
 from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.data.source import DataSource, phase_frames, stage1_i2_frames
 from irdepth_jax.data.synthetic import render_scene
-from irdepth_jax.evaluate import evaluate_stage1
+from irdepth_jax.errors import RunError
+from irdepth_jax.evaluators import evaluate_stage1
 from irdepth_jax.models.pipeline import unet_input
-from irdepth_jax.train.loop import (DataSource, RunError, init_unet, phase_frames,
-                                    sky_reference_depth, stage1_i2_frames)
 from irdepth_jax.train.parallel import DataParallel
+from irdepth_jax.train.stages import sky_reference_depth
+from irdepth_jax.train.variables import init_unet
 
-QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 CFG = get_config("tiny")
 
 
@@ -174,13 +176,14 @@ def test_stage1_i1_frames_option(independent):
 
 
 # --------------------------------------------------------------------------- defect 8
-def test_resume_with_a_longer_stage1_i1_is_refused(independent, tmp_path, capsys):
-    work = tmp_path / "run"
-    base = ["train", "stage1", "--data", str(independent), "--workdir", str(work), *QUICK]
-    assert cli.main(base + ["--steps", "2"]) == 0
-    capsys.readouterr()
-    code = cli.main(base + ["--resume", "--steps", "4"])
+def test_resume_with_a_longer_stage1_i1_is_refused(synthetic_data, stage1_run, tmp_path,
+                                                   capsys):
+    """A copy of the session's shared Stage I run (--steps 4: I-2 started from I-1 step 4)."""
+    work = copy_run(stage1_run, tmp_path / "run")
+    base = ["train", "stage1", "--data", str(synthetic_data), "--workdir", str(work), *QUICK]
+    assert STEPS["stage1"] == 4
+    code = cli.main(base + ["--resume", "--steps", "8"])
     err = capsys.readouterr().err
-    assert code == 2 and "started from stage1_i1 at step 2" in err and "stage1_i2" in err
+    assert code == 2 and "started from stage1_i1 at step 4" in err and "stage1_i2" in err
     # the same length resumes as before (nothing to do)
-    assert cli.main(base + ["--resume", "--steps", "2"]) == 0
+    assert cli.main(base + ["--resume", "--steps", "4"]) == 0

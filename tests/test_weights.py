@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from da_params import random_params
 from safetensors.numpy import save_file
 
 from irdepth_jax.models.depth_anything import depth_anything_config
@@ -18,8 +19,6 @@ from irdepth_jax.weights import (
     save_params,
     to_official_state_dict,
 )
-
-from da_params import random_params
 
 
 def _official_tiny_keys(depth=4):

@@ -170,26 +170,35 @@ def target_size(height: int, width: int, input_size: int = 518, multiple: int = 
     return constrain(scale * height), constrain(scale * width)
 
 
+def network_input(rgb: jax.Array, size: tuple[int, int]) -> jax.Array:
+    """RGB (B, H, W, 3) float in [0, 1] -> (B, h, w, 3) float32 network input: resized to `size`
+    with the official a = -0.75 bicubic kernel (OpenCV INTER_CUBIC / torch bicubic, borders
+    clamped, no antialiasing; two constant matrices, so it exports to ONNX as two MatMuls) and
+    ImageNet-normalised. The one pre-processing of every path (training, eval, predict, export);
+    `preprocess` picks the official size for it."""
+    x = jnp.asarray(rgb, jnp.float32)
+    height, width = x.shape[-3:-1]
+    if (height, width) != tuple(size):
+        rows = jnp.asarray(cubic_resize_matrix(height, size[0], height / size[0]), jnp.float32)
+        cols = jnp.asarray(cubic_resize_matrix(width, size[1], width / size[1]), jnp.float32)
+        hi = jax.lax.Precision.HIGHEST
+        x = jnp.einsum("oh,...hwc->...owc", rows, x, precision=hi)
+        x = jnp.einsum("pw,...owc->...opc", cols, x, precision=hi)
+    return (x - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
+
+
 def preprocess(rgb: jax.Array, input_size: int = 518) -> jax.Array:
     """The official Depth Anything V2 input transform.
 
-    rgb: (B, H, W, 3) or (H, W, 3), RGB float in [0, 1] or uint8 (divided by 255). Resized with
-    the a = -0.75 bicubic kernel (OpenCV INTER_CUBIC / torch bicubic, no antialiasing) to
-    `target_size(H, W, input_size)`, then ImageNet-normalised. Returns (B, H', W', 3) float32 (no
-    batch axis if the input had none).
+    rgb: (B, H, W, 3) or (H, W, 3), RGB float in [0, 1] or uint8 (divided by 255). Resized to
+    `target_size(H, W, input_size)` and normalised by `network_input`. Returns (B, H', W', 3)
+    float32 (no batch axis if the input had none).
     """
     x = jnp.asarray(rgb)
     if x.ndim not in (3, 4) or x.shape[-1] != 3:
         raise ValueError(f"preprocess expects RGB images (B, H, W, 3) or (H, W, 3), got shape {x.shape}")
     x = x.astype(jnp.float32) / 255.0 if x.dtype == jnp.uint8 else x.astype(jnp.float32)
-    height, width = x.shape[-3:-1]
-    new_h, new_w = target_size(height, width, input_size)
-    rows = jnp.asarray(cubic_resize_matrix(height, new_h, height / new_h), jnp.float32)
-    cols = jnp.asarray(cubic_resize_matrix(width, new_w, width / new_w), jnp.float32)
-    hi = jax.lax.Precision.HIGHEST
-    x = jnp.einsum("oh,...hwc->...owc", rows, x, precision=hi)
-    x = jnp.einsum("pw,...owc->...opc", cols, x, precision=hi)
-    return (x - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
+    return network_input(x, target_size(*x.shape[-3:-1], input_size))
 
 
 def resize_depth(depth: jax.Array, size: tuple[int, int]) -> jax.Array:

@@ -4,12 +4,13 @@
       -> MTSAUNet (eval mode)       recon, saturation (B, H, W, 1); seg_logits (B, H, W, C)
       -> unet_to_hsv                 H = class hue of seg, S = saturation, V = recon
       -> hsv_to_rgb                  pseudo-RGB (B, H, W, 3) in [0, 1]
-      -> depth_input                 resize to (cfg.depth.input_height, input_width), ImageNet norm
+      -> network_input               resize to (cfg.depth.input_height, input_width), ImageNet norm
       -> DepthAnythingV2             depth (B, h, w)
       -> resize_depth                depth (B, H, W) in metres
 
-Every function is jit-able; the module objects are rebuilt from the (hashable) config, so
-``jax.jit(predict_depth, static_argnums=3)`` works.
+`run_pipeline` (jitted, `cfg` static) is the one path from raw counts to depth: Stage II's loss,
+`irdepth eval`, `irdepth predict`, the figures and `irdepth export` (`raw_to_depth`) all call
+it, so what is trained is what is evaluated, predicted and exported.
 """
 
 from __future__ import annotations
@@ -20,12 +21,16 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import SKY_CLASS, Config
+from irdepth_jax.config import SKY_CLASS, Config, resolved_raw_bits
 from irdepth_jax.imaging.color import class_hue, hsv_compose, hsv_to_rgb
 from irdepth_jax.imaging.raw import normalize_raw
-from irdepth_jax.models.depth_anything import (IMAGENET_MEAN, IMAGENET_STD, DepthAnythingConfig,
-                                               DepthAnythingV2, depth_anything_config,
-                                               resize_depth)
+from irdepth_jax.models.depth_anything import (
+    DepthAnythingConfig,
+    DepthAnythingV2,
+    depth_anything_config,
+    network_input,
+    resize_depth,
+)
 from irdepth_jax.models.unet import MTSAUNet
 
 
@@ -58,15 +63,6 @@ def unet_input(raw: jax.Array, cfg: Config, brightness: jax.Array | None = None)
     return x
 
 
-def resolved_raw_bits(cfg: Config) -> int:
-    """`cfg.data.raw_bits` as 14 or 16; 'auto' must have been resolved from the data first."""
-    bits = cfg.data.raw_bits
-    if bits not in (14, 16):
-        raise ValueError(f"data.raw_bits {bits!r}: expected 14 or 16 ('auto' is resolved from "
-                         "the training frames when a run starts)")
-    return int(bits)
-
-
 def unet_outputs(unet_vars: dict, raw: jax.Array, cfg: Config,
                  brightness: jax.Array | None = None) -> dict[str, jax.Array]:
     """MTSA-UNet in eval mode (BatchNorm running averages), no gradient to its variables.
@@ -88,61 +84,58 @@ def unet_to_hsv(outputs: dict[str, jax.Array], hue_mode: str = "soft") -> jax.Ar
                        outputs["recon"])
 
 
-def hsv_pseudo_rgb(outputs: dict[str, jax.Array], hue_mode: str = "soft") -> jax.Array:
-    """Pseudo-RGB (B, H, W, 3) in [0, 1] of the UNet outputs (fixed HSV -> RGB)."""
-    return hsv_to_rgb(unet_to_hsv(outputs, hue_mode))
-
-
-def sky_mask(seg_logits: jax.Array) -> jax.Array:
-    """(B, H, W) bool: pixels whose most probable class is sky."""
-    return jnp.argmax(seg_logits, axis=-1) == SKY_CLASS
-
-
-def depth_input(rgb: jax.Array, size: tuple[int, int]) -> jax.Array:
-    """RGB (B, H, W, 3) in [0, 1] -> (B, h, w, 3) ImageNet-normalised network input.
-
-    Cubic resampling (jax.image, a = -0.5; the official pre-processing uses a = -0.75 and a
-    size derived from 518: training and inference here share this one, so it is consistent).
-    """
-    b, h, w, c = rgb.shape
-    if (h, w) != tuple(size):
-        rgb = jax.image.resize(rgb, (b, size[0], size[1], c), "cubic", antialias=False)
-    return (rgb - jnp.asarray(IMAGENET_MEAN)) / jnp.asarray(IMAGENET_STD)
-
-
 def depth_from_rgb(da_params: Any, rgb: jax.Array, cfg: Config) -> jax.Array:
     """Depth Anything V2 on an RGB image (B, H, W, 3) in [0, 1] -> depth (B, H, W) (metres)."""
     size = (cfg.depth.input_height, cfg.depth.input_width)
     depth = DepthAnythingV2(depth_model_config(cfg)).apply({"params": da_params},
-                                                           depth_input(rgb, size))
+                                                           network_input(rgb, size))
     return resize_depth(depth, rgb.shape[1:3])
 
 
-def predict_depth(unet_vars: dict, da_params: Any, raw: jax.Array, cfg: Config
-                  ) -> dict[str, jax.Array]:
-    """The full pipeline of the paper on raw frames.
+@functools.partial(jax.jit, static_argnames=("cfg",))
+def run_pipeline(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, cfg: Config,
+                 image: jax.Array | None = None, brightness: jax.Array | None = None
+                 ) -> dict[str, jax.Array | None]:
+    """The paper's pipeline on a batch of frames, jitted (`cfg` static); the one inference path.
 
     Args:
-      unet_vars: Stage I ``{'params', 'batch_stats'}``.
-      da_params: Stage II Depth Anything V2 params.
-      raw: (B, H, W) uint16 raw 14-bit counts.
-      cfg: the run's config (static under jit).
+      unet_vars: Stage I ``{'params', 'batch_stats'}`` (frozen: no gradient reaches them), or
+        None for a Stage II model without Stage I (tone-mapping / visible baselines).
+      da_params: Depth Anything V2 params (differentiable: Stage II's loss calls this), or None
+        for a Stage I model (no depth).
+      raw: (B, H, W) uint16 raw counts of `cfg.data.raw_bits` bits (None without a UNet).
+      cfg: the run's config; `stage2.preprocessing` picks the depth network's input image.
+      image: (B, H, W, 3) uint8 input image of a non-HSV model (a tone-mapping baseline made on
+        the host, `data.source.host_image`, or a visible frame); unused by HSV models.
+      brightness: optional (B,) brightness-augmentation factors (training; see `unet_input`).
     Returns:
-      dict: depth (B, H, W) float32 metres, hsv and rgb (B, H, W, 3) in [0, 1],
-      seg (B, H, W) int32 classes, sky (B, H, W) bool.
+      dict: ``depth`` (B, H, W) float32 metres (None without `da_params`); ``rgb`` (B, H, W, 3)
+      the depth network's input image in [0, 1] (the pseudo-RGB for HSV models); with a UNet
+      also ``hsv`` (B, H, W, 3) in [0, 1], ``seg`` (B, H, W) int32 classes and ``sky``
+      (B, H, W) bool (argmax == sky), else None.
     """
-    outputs = unet_outputs(unet_vars, raw, cfg)
-    hsv = unet_to_hsv(outputs, cfg.stage2.hue_mode)
-    rgb = hsv_to_rgb(hsv)
-    return {"depth": depth_from_rgb(da_params, rgb, cfg), "hsv": hsv, "rgb": rgb,
-            "seg": jnp.argmax(outputs["seg_logits"], axis=-1).astype(jnp.int32),
-            "sky": sky_mask(outputs["seg_logits"])}
+    hsv = seg = sky = None
+    if unet_vars is not None:
+        outputs = unet_outputs(unet_vars, raw, cfg, brightness)
+        hsv = unet_to_hsv(outputs, cfg.stage2.hue_mode)
+        seg = jnp.argmax(outputs["seg_logits"], axis=-1).astype(jnp.int32)
+        sky = seg == SKY_CLASS
+    if cfg.stage2.preprocessing == "hsv":
+        if hsv is None:
+            raise ValueError("stage2.preprocessing=hsv needs the Stage I model (unet_vars)")
+        rgb = hsv_to_rgb(hsv)
+    elif image is not None:
+        rgb = image.astype(jnp.float32) / 255.0
+    else:
+        raise ValueError(f"stage2.preprocessing={cfg.stage2.preprocessing}: the input image is "
+                         "made on the host; pass it as `image` (B, H, W, 3) uint8")
+    rgb = jax.lax.stop_gradient(rgb)
+    depth = None if da_params is None else depth_from_rgb(da_params, rgb, cfg)
+    return {"depth": depth, "rgb": rgb, "hsv": hsv, "seg": seg, "sky": sky}
 
 
-@functools.partial(jax.jit, static_argnums=3)
+@functools.partial(jax.jit, static_argnames=("cfg",))
 def raw_to_depth(unet_vars: dict, da_params: Any, raw: jax.Array, cfg: Config) -> jax.Array:
-    """Depth (B, H, W) float32 metres of raw frames (B, H, W) uint16: `predict_depth`'s depth
-    (raw -> MTSA-UNet -> HSV -> RGB -> Depth Anything V2), jitted (`cfg` static). The function
-    `irdepth export` writes out; only the HSV pre-processing is a JAX function (the tone-mapping
-    baselines run on the host)."""
-    return predict_depth(unet_vars, da_params, raw, cfg)["depth"].astype(jnp.float32)
+    """Depth (B, H, W) float32 metres of raw frames (B, H, W) uint16: `run_pipeline`'s depth of
+    an HSV model, jitted (`cfg` static). The function `irdepth export` writes out."""
+    return run_pipeline(unet_vars, da_params, raw, cfg)["depth"].astype(jnp.float32)

@@ -1,1 +1,1 @@
-"""Staged training: states and optimizers, steps, data parallelism, checkpoints, loops."""
+"""Staged training: states and optimizers, steps, data parallelism, checkpoints, the phase driver and the stages."""

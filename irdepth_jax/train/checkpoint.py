@@ -23,7 +23,7 @@ import errno
 import logging
 import os
 import shutil
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -32,6 +32,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from irdepth_jax.train.state import STAGES, TrainState, path_to_str
+
 
 class CheckpointError(ValueError):
     """A checkpoint that is missing, of another stage or of another shape (one-line message)."""
@@ -46,7 +47,7 @@ def _not_a_save_error_report(record: logging.LogRecord) -> bool:
     """Log filter: drops reports, with tracebacks, of errors raised in orbax's code (its save
     threads and asyncio tasks log each failure, then its secondary failures): orbax raises the
     failure to the caller at the next save or `Checkpointer.wait`, where the CLI reports it in
-    one line (`train.loop` naming the disk when it is full; IRDEPTH_DEBUG=1: its traceback)."""
+    one line (`train.stages` naming the disk when it is full; IRDEPTH_DEBUG=1: its traceback)."""
     tb = record.exc_info[2] if record.exc_info else None
     while tb is not None:
         if tb.tb_frame.f_globals.get("__name__", "").startswith("orbax."):
@@ -146,7 +147,7 @@ class Checkpointer:
 
     def restore(self, template: TrainState, step: int | None = None, model_only: bool = False
                 ) -> tuple[TrainState, dict]:
-        """Restores into the structure, shapes and shardings of `template`.
+        """Restores a training state into the structure, shapes and shardings of `template`.
 
         Args:
           template: a state of this stage built from the same config (its values are ignored).
@@ -158,20 +159,45 @@ class Checkpointer:
           CheckpointError naming the directory when there is no checkpoint, it is of another
           stage, or its arrays do not match the template (first mismatching path).
         """
-        step = self._resolve(step)
-        meta = self.read_meta(step)
-        if meta.get("stage") != self.stage:
-            raise CheckpointError(
-                f"checkpoint {self.directory} step {step} is a {meta.get('stage')!r} checkpoint, "
-                f"expected {self.stage!r}")
         items = template.checkpoint_items()
         names = ("model",) if model_only else ("model", "train")
+        restored, meta = self.restore_items({n: items[n] for n in names}, step,
+                                            check_finite=False)
+        return template.from_checkpoint_items(restored), meta
+
+    def restore_items(self, templates: Mapping[str, Any], step: int | None = None,
+                      stages: Sequence[str] | None = None, check_finite: bool = True
+                      ) -> tuple[dict, dict]:
+        """The one restore path: items of `step` (the latest finalised by default).
+
+        Args:
+          templates: item name ('model', 'train', 'frozen') -> tree with the expected shapes
+            (and shardings).
+          stages: accepted stage tags (default: this Checkpointer's stage).
+          check_finite: refuse NaN / inf weights (a finished model; a resumed run may restore
+            the state it stopped at).
+        Returns:
+          ({item: restored tree}, meta). CheckpointError for a missing / other-stage /
+          other-shape / non-finite checkpoint, naming it.
+        """
+        step = self._resolve(step)
+        stages = tuple(stages or (self.stage,))
+        meta = self.read_meta(step)
+        if meta.get("stage") not in stages:
+            raise CheckpointError(f"checkpoint {self.directory} step {step} is a "
+                                  f"{meta.get('stage')!r} checkpoint, expected "
+                                  f"{' or '.join(map(repr, stages))}")
         stored = self.manager.item_metadata(step)
-        for name in names:
-            _check_shapes(stored[name].tree, items[name], f"{self.directory} step {step} {name}")
+        for name, template in templates.items():
+            if stored.get(name) is None:
+                raise CheckpointError(f"checkpoint {self.directory} step {step} has no {name!r}")
+            _check_shapes(stored[name].tree, template, f"{self.directory} step {step} {name}")
         restored = self.manager.restore(step, args=ocp.args.Composite(**{
-            name: ocp.args.StandardRestore(_abstract(items[name])) for name in names}))
-        return template.from_checkpoint_items({n: restored[n] for n in names}), meta
+            name: ocp.args.StandardRestore(_abstract(t)) for name, t in templates.items()}))
+        items = {name: restored[name] for name in templates}
+        if check_finite:
+            _check_finite(items, f"{self.directory} step {step}")
+        return items, meta
 
     def wait(self) -> None:
         """Blocks until pending asynchronous saves are finalised."""
@@ -190,37 +216,50 @@ class Checkpointer:
         return step
 
 
-def restore_items(directory: str, stage: str | tuple[str, ...], templates: Mapping[str, Any],
-                  step: int | None = None) -> tuple[dict, dict]:
-    """Reads items of a finished run of `stage` (e.g. Stage I for Stage II, or for predict).
+def has_checkpoint(directory: str) -> bool:
+    """Whether `directory` holds a finished checkpoint step."""
+    return os.path.isdir(directory) and any(n.isdigit() for n in os.listdir(directory))
 
-    Args:
-      directory: the checkpoint directory (``WORKDIR/checkpoints/<phase>``).
-      stage: accepted stage tag(s).
-      templates: item name ('model', 'frozen', 'train') -> tree with the expected shapes.
-      step: the step (the latest finalised by default).
-    Returns:
-      ({item: restored tree}, meta). CheckpointError for a missing / other-stage / other-shape
-      checkpoint, naming it.
-    """
+
+def find_checkpoint(path: str, stages: Sequence[str] = ("stage2", "stage1_i2", "stage1_i1")
+                    ) -> tuple[str, str]:
+    """The one checkpoint lookup: (checkpoint directory, stage) of `path`, a run's workdir (its
+    ``checkpoints/<stage>`` of the first of `stages` that holds a finished step, so the latest
+    stage by default) or a checkpoint directory itself (its stage read from its meta, which
+    must be one of `stages`). CheckpointError (one line naming `path`) otherwise."""
+    for stage in stages:
+        candidate = os.path.join(path, "checkpoints", stage)
+        if has_checkpoint(candidate):
+            return candidate, stage
+    if has_checkpoint(path):
+        stage = str(read_meta(path).get("stage"))
+        if stage not in stages:
+            raise CheckpointError(f"{path}: a {stage!r} checkpoint, expected "
+                                  f"{' or '.join(map(repr, stages))}")
+        return path, stage
+    raise CheckpointError(f"{path}: no {' / '.join(stages)} checkpoint there (expected a run's "
+                          "workdir or one of its checkpoints/<stage> directories)")
+
+
+def read_meta(directory: str, step: int | None = None) -> dict:
+    """The one meta reader: the JSON meta (stage, step, config, ...) of a checkpoint directory's
+    `step` (the latest finalised by default), opened read-only."""
+    reader = Checkpointer(directory, "stage2", max_to_keep=None, read_only=True)
+    try:
+        return reader.read_meta(step)
+    finally:
+        reader.close()
+
+
+def restore_items(directory: str, stage: str | Sequence[str], templates: Mapping[str, Any],
+                  step: int | None = None) -> tuple[dict, dict]:
+    """Reads items of a finished run of `stage` (accepted stage tag or tags), e.g. Stage I for
+    Stage II, or a model for predict: `Checkpointer.restore_items` of the directory opened
+    read-only, weights checked to be finite."""
     stages = (stage,) if isinstance(stage, str) else tuple(stage)
     reader = Checkpointer(directory, stages[0], max_to_keep=None, read_only=True)
     try:
-        meta = reader.read_meta(step)
-        if meta.get("stage") not in stages:
-            raise CheckpointError(f"checkpoint {reader.directory} is a {meta.get('stage')!r} "
-                                  f"checkpoint, expected {' or '.join(stages)}")
-        step = int(meta["step"])
-        stored = reader.manager.item_metadata(step)
-        for name, template in templates.items():
-            if stored.get(name) is None:
-                raise CheckpointError(f"checkpoint {reader.directory} step {step} has no {name!r}")
-            _check_shapes(stored[name].tree, template, f"{reader.directory} step {step} {name}")
-        restored = reader.manager.restore(step, args=ocp.args.Composite(**{
-            name: ocp.args.StandardRestore(_abstract(t)) for name, t in templates.items()}))
-        items = {name: restored[name] for name in templates}
-        _check_finite(items, f"{reader.directory} step {step}")
-        return items, meta
+        return reader.restore_items(templates, step, stages)
     finally:
         reader.close()
 

@@ -45,10 +45,8 @@ from jax import lax
 
 from irdepth_jax.config import IGNORE_LABEL, Config
 from irdepth_jax.imaging.gradients import gradient_magnitude
-from irdepth_jax.losses import (cross_entropy_loss, multitask_loss, reconstruction_loss,
-                                silog_loss, sky_loss)
-from irdepth_jax.models.pipeline import (depth_from_rgb, hsv_pseudo_rgb, sky_mask, unet_input,
-                                         unet_outputs)
+from irdepth_jax.losses import cross_entropy_loss, multitask_loss, reconstruction_loss, silog_loss, sky_loss
+from irdepth_jax.models.pipeline import run_pipeline, unet_input
 from irdepth_jax.models.unet import MTSAUNet
 from irdepth_jax.train.state import TrainState
 
@@ -196,24 +194,6 @@ def stage1_loss_fn(cfg: Config, phase: str, axis_name: str | None = None) -> Los
     return loss_fn
 
 
-def stage2_image(frozen: Any, batch: Any, cfg: Config) -> tuple[jax.Array, jax.Array | None]:
-    """The Stage II input image (B, H, W, 3) in [0, 1] and the sky mask (None without Stage I).
-
-    ``hsv``: pseudo-RGB of the frozen Stage I model on ``batch['raw14']``; otherwise
-    ``batch['image']`` (B, H, W, 3) uint8 made on the host (tonemap or aligned visible image).
-    The sky mask is the frozen segmentation branch's argmax == sky, whenever `frozen` has a UNet.
-    """
-    outputs = None
-    if frozen is not None and "unet" in frozen:
-        outputs = unet_outputs(frozen["unet"], batch["raw14"], cfg, batch.get("brightness"))
-    if cfg.stage2.preprocessing == "hsv":
-        rgb = hsv_pseudo_rgb(outputs, cfg.stage2.hue_mode)
-    else:
-        rgb = batch["image"].astype(jnp.float32) / 255.0
-    sky = None if outputs is None else sky_mask(outputs["seg_logits"])
-    return lax.stop_gradient(rgb), sky
-
-
 def stage2_loss_fn(cfg: Config, ref_depth: float, axis_name: str | None = None) -> LossFn:
     """SiLog + lambda_sky * sky loss (Stage II) for `make_train_step`.
 
@@ -224,14 +204,17 @@ def stage2_loss_fn(cfg: Config, ref_depth: float, axis_name: str | None = None) 
     `frozen` = ``{'unet': Stage I variables}`` (never differentiated), params = Depth Anything
     V2 params. Batch keys: ``raw14``, ``depth`` (B, H, W) metres, ``valid`` (B, H, W) bool,
     and ``image`` for non-HSV pre-processing. `ref_depth`: the sky's target depth
-    (`train.loop.sky_reference_depth`: 0.99 x the largest depth the head and metrics allow). `axis_name` is unused (no BatchNorm in Depth Anything
+    (`train.stages.sky_reference_depth`: 0.99 x the largest depth the head and metrics
+    allow). `axis_name` is unused (no BatchNorm in Depth Anything
     V2; the frozen UNet runs in eval mode): it keeps the signature of `stage1_loss_fn`.
     """
     s2, d = cfg.stage2, cfg.data
 
     def loss_fn(params, batch_stats, frozen, batch, rng):
-        rgb, sky = stage2_image(frozen, batch, cfg)
-        pred = depth_from_rgb(params, rgb, cfg)
+        unet = None if frozen is None else frozen.get("unet")
+        out = run_pipeline(unet, params, batch.get("raw14"), cfg, image=batch.get("image"),
+                           brightness=batch.get("brightness"))
+        pred, sky = out["depth"], out["sky"]
         gt = batch["depth"].astype(jnp.float32)
         valid = batch["valid"].astype(bool) & (gt >= d.min_depth) & (gt <= d.max_depth)
         terms = {"silog": silog_loss(pred, gt, valid, s2.silog_lambda)}

@@ -11,7 +11,9 @@ import dataclasses
 import math
 
 from irdepth_jax.config import Config
-from irdepth_jax.train.loop import RunError, RunOptions, phase_frames
+from irdepth_jax.data.source import phase_frames
+from irdepth_jax.errors import RunError
+from irdepth_jax.train.phase import RunOptions
 from irdepth_jax.train.workdir_lock import held_stages
 
 STAGES = ("stage1", "stage2")

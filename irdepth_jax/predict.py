@@ -1,0 +1,502 @@
+"""`irdepth predict`: a trained model on raw thermal files -> depth PNGs, HSV images, videos.
+
+Frames are read ahead on a thread, grouped by size into batches of `--batch-size`, run through
+`models.pipeline.run_pipeline` (the path training, eval and export use) and written by a small
+thread pool while the next batch computes, so decoding, the model and encoding overlap. Each
+frame size runs at one batch size (the last batch of a size is padded with its last frame), so
+it compiles once.
+
+Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256),
+``NAME_depth_color.png`` and, for models with a UNet, ``NAME_rgb.png`` (pseudo-RGB) and
+``NAME_hsv.png`` (H, S, V as 8-bit channels). Video mode (``--video``): one ``NAME.mp4`` per
+sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
+raw tone-mapped | pseudo-RGB of the HSV image | coloured depth side by side, and with
+``--depth-png`` the 16-bit depth PNGs of its frames too.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import fnmatch
+import os
+import queue
+import sys
+import threading
+from collections.abc import Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
+
+import numpy as np
+
+from irdepth_jax.config import Config
+from irdepth_jax.fileio import make_dirs, write_png
+
+DEFAULT_BATCH = 4
+"""Frames per model call (`experiments/bench_predict.py` measures 1 vs 8)."""
+DEFAULT_FPS = 15.0
+"""Frame rate of the depth videos (MS2's thermal camera records at 15 Hz)."""
+SKIPPED_NAMES_SHOWN = 8
+"""Skipped files named in predict's summary line (the rest are counted)."""
+READ_AHEAD = 2
+"""Batches decoded ahead of the model."""
+WRITERS = 2
+"""Threads encoding and writing output files (PNG encoding releases the GIL)."""
+
+
+def _run_error(message: str) -> Exception:
+    from irdepth_jax.errors import RunError
+
+    return RunError(message)
+
+
+def list_inputs(inputs: Sequence[str], pattern: str | None = None
+                ) -> list[tuple[str, list[str]]]:
+    """The files `inputs` name, per input: (input, its files).
+
+    A file stands for itself; a folder for its files (not sub-folders) whose names match the
+    glob `pattern` (default: every file with a `data.rawio.RAW_SUFFIXES` suffix), sorted.
+    RunError (one line) for a missing path or a folder with no such file.
+    """
+    from irdepth_jax.data.rawio import RAW_SUFFIXES
+
+    listed = []
+    for item in inputs:
+        if os.path.isdir(item):
+            names = sorted(n for n in os.listdir(item) if os.path.isfile(os.path.join(item, n))
+                           and (fnmatch.fnmatch(n, pattern) if pattern
+                                else n.lower().endswith(RAW_SUFFIXES)))
+            if not names:
+                wanted = (f"--glob {pattern!r}" if pattern
+                          else f"a raw frame suffix ({', '.join(RAW_SUFFIXES)})")
+                raise _run_error(f"{item}: no file matches {wanted}")
+            listed.append((item, [os.path.join(item, n) for n in names]))
+        elif os.path.isfile(item):
+            listed.append((item, [item]))
+        else:
+            raise _run_error(f"{item}: no such file or directory")
+    return listed
+
+
+@dataclasses.dataclass(frozen=True)
+class ThermalInput:
+    """One input of `irdepth predict` (a file or folder) and its raw thermal files."""
+
+    item: str
+    files: tuple[str, ...]
+    frames: int
+    """How many frames the files hold."""
+    shapes: tuple[tuple[tuple[int, int], int], ...]
+    """((H, W), number of frames of that size) of the files' frames."""
+
+
+def thermal_inputs(inputs: Sequence[str], bits: int, pattern: str | None = None,
+                   strict: bool = False) -> list[ThermalInput]:
+    """The raw thermal files among `inputs` (files and folders, see `list_inputs`), each read
+    and checked as `bits`-bit counts (`data.rawio.read_frames`), per input.
+
+    In a folder, 8-bit and colour images (visible / NIR frames beside the thermal ones) are
+    skipped and named in one ``irdepth: skipped ...`` line on stderr; with `strict` they are an
+    error. A file named in `inputs` must be a thermal frame, and so must a folder hold at least
+    one. Outputs are named by frame: two frames of the same name are an error.
+
+    Raises:
+      RunError / `data.rawio.RawFileError` (ValueErrors, one line naming the file).
+    """
+    from irdepth_jax.data.rawio import NotThermalError, read_frames
+
+    found, skipped, owner = [], [], {}
+    in_folders = 0
+    for item, files in list_inputs(inputs, pattern):
+        folder = os.path.isdir(item)
+        in_folders += len(files) if folder else 0
+        kept, frames, shapes = [], 0, {}
+        for f in files:
+            try:
+                read = read_frames(f, bits)
+            except NotThermalError as err:
+                if strict or not folder:
+                    hint = " (--strict: pick the thermal files with --glob)" if folder else ""
+                    raise _run_error(f"{err}{hint}") from None
+                skipped.append(f)
+                continue
+            for name, raw in read:
+                if name in owner:
+                    raise _run_error(f"{f} and {owner[name]}: same name {name!r}, their outputs "
+                                     "would overwrite each other (predict them into separate "
+                                     "--out folders)")
+                owner[name] = f
+                shapes[raw.shape] = shapes.get(raw.shape, 0) + 1
+            kept.append(f)
+            frames += len(read)
+        if folder and not kept:
+            raise _run_error(f"{item}: none of its {len(files)} files is a raw thermal frame "
+                             "(all 8-bit or colour images)")
+        found.append(ThermalInput(item, tuple(kept), frames, tuple(shapes.items())))
+    if skipped:
+        names = [os.path.basename(f) for f in skipped]
+        more = len(names) - SKIPPED_NAMES_SHOWN
+        shown = ", ".join(names[:SKIPPED_NAMES_SHOWN]) + (f" and {more} more" if more > 0 else "")
+        print(f"irdepth: skipped {len(skipped)} of {in_folders} files that are not raw thermal "
+              f"frames (8-bit or colour): {shown}", file=sys.stderr)
+    return found
+
+
+def thermal_files(inputs: Sequence[str], bits: int, pattern: str | None = None,
+                  strict: bool = False) -> list[str]:
+    """The raw thermal files among `inputs`, in order (`thermal_inputs`, flattened)."""
+    return [f for found in thermal_inputs(inputs, bits, pattern, strict) for f in found.files]
+
+
+def colorize_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
+    """Depth (H, W) metres -> (H, W, 3) uint8 RGB (matplotlib 'turbo', near = red)."""
+    from matplotlib import colormaps
+
+    x = 1.0 - np.clip(depth / max(max_depth, 1e-6), 0.0, 1.0)
+    return (colormaps["turbo"](x)[..., :3] * 255).astype(np.uint8)
+
+
+def display_raw(raw: np.ndarray, bits: int) -> np.ndarray:
+    """A raw frame (H, W) for display: (H, W, 3) uint8 grey, linear 1-99 % percentile stretch."""
+    from irdepth_jax.imaging.tonemap import linear_tail
+
+    return np.repeat(linear_tail(raw, 1.0, 99.0, bits)[..., None], 3, axis=-1)
+
+
+# --------------------------------------------------------------------------- the model
+@dataclasses.dataclass(frozen=True)
+class Frame:
+    """One raw frame to predict: its input file, output name and counts (H, W) uint16."""
+
+    file: str
+    name: str
+    raw: np.ndarray
+
+
+class Predictor:
+    """`run_pipeline` of a loaded model (`evaluate.load_model`) on batches of raw frames."""
+
+    def __init__(self, cfg: Config, model: dict, bits: int):
+        self.cfg, self.model, self.bits = cfg, model, bits
+        if model["depth"] is None:  # a Stage I model: its HSV images, no depth
+            self.cfg = dataclasses.replace(
+                cfg, stage2=dataclasses.replace(cfg.stage2, preprocessing="hsv"))
+
+    def dispatch(self, raw: np.ndarray) -> dict:
+        """Starts the model on raw (B, H, W) uint16 (JAX runs it asynchronously); returns the
+        device outputs (`run_pipeline`'s dict) to pass to `fetch`."""
+        import jax.numpy as jnp
+
+        from irdepth_jax.data.source import host_image
+        from irdepth_jax.models.pipeline import run_pipeline
+
+        image = host_image({"raw14": raw}, self.cfg.stage2.preprocessing, self.bits)
+        unet = self.model["unet"]
+        return run_pipeline(unet, self.model["depth"], None if unet is None else jnp.asarray(raw),
+                            self.cfg, image=None if image is None else jnp.asarray(image))
+
+    def fetch(self, out: dict) -> dict[str, np.ndarray]:
+        """The host arrays of `dispatch`'s outputs: 'depth' (B, H, W) metres of a depth model;
+        'rgb' (pseudo-RGB, HSV -> RGB) and 'hsv' (B, H, W, 3) in [0, 1] of a model with a UNet."""
+        import jax
+
+        from irdepth_jax.imaging.color import hsv_to_rgb
+
+        if self.model["unet"] is not None and self.cfg.stage2.preprocessing != "hsv":
+            out = {**out, "rgb": hsv_to_rgb(out["hsv"])}  # its input image is a tone map
+        keys = [k for k in ("depth", "rgb", "hsv")
+                if out[k] is not None and (k == "depth" or self.model["unet"] is not None)]
+        return {k: np.asarray(v) for k, v in zip(keys, jax.device_get([out[k] for k in keys]))}
+
+
+def _checked(file: str, name: str, images: dict) -> dict:
+    """`images` of one frame; RunError naming `file` when a value is NaN / inf (a NaN depth
+    would be written as 0, "no depth")."""
+    for kind, values in images.items():
+        bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
+        if bad:
+            raise _run_error(
+                f"{file}: the model predicted non-finite {kind} (NaN / inf) on {bad} of "
+                f"{np.size(values)} values of frame {name!r}; stopped before writing its files")
+    return images
+
+
+def output_pngs(images: dict, max_depth: float) -> dict:
+    """The PNGs (OpenCV BGR order) of one frame's finite predictions, by file suffix:
+    rgb, hsv (8-bit), depth (16-bit, metres x 256) and depth_color."""
+    pngs = {}
+    if "rgb" in images:
+        pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])
+    if "depth" in images:
+        pngs["depth"] = depth_png(images["depth"])
+        pngs["depth_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
+    return pngs
+
+
+def _to8(x: np.ndarray) -> np.ndarray:
+    return np.clip(np.round(x * 255), 0, 255).astype(np.uint8)
+
+
+def depth_png(depth: np.ndarray) -> np.ndarray:
+    """Depth (H, W) metres -> the 16-bit PNG encoding (KITTI / MS2): round(metres x 256)."""
+    return np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)
+
+
+def video_panels(raw: np.ndarray, images: dict, bits: int, max_depth: float) -> np.ndarray:
+    """One video frame (H, k*W, 3) uint8 RGB: raw tone-mapped | pseudo-RGB (| coloured depth)."""
+    panels = [display_raw(raw, bits)]
+    if "rgb" in images:
+        panels.append(_to8(images["rgb"]))
+    if "depth" in images:
+        panels.append(colorize_depth(images["depth"], max_depth))
+    return np.concatenate(panels, axis=1)
+
+
+# --------------------------------------------------------------------------- batching
+def _frames(files: Sequence[str], bits: int) -> Iterator[Frame]:
+    from irdepth_jax.data.rawio import read_frames
+
+    for f in files:
+        for name, raw in read_frames(f, bits):
+            yield Frame(f, name, raw)
+
+
+def _read_ahead(frames: Iterator[Frame], size: int) -> Iterator[Frame]:
+    """`frames` decoded on a background thread, at most `size` ahead (errors re-raised here)."""
+    q: queue.Queue = queue.Queue(maxsize=max(size, 1))
+    done = object()
+    stop = threading.Event()
+
+    def work():
+        try:
+            for frame in frames:
+                while not stop.is_set():
+                    try:
+                        q.put(frame, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(done)
+        except BaseException as err:  # noqa: BLE001 - re-raised on the consumer's thread
+            q.put(err)
+
+    thread = threading.Thread(target=work, daemon=True, name="irdepth-read")
+    thread.start()
+    try:
+        while (item := q.get()) is not done:
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+
+
+def batches(frames: Iterator[Frame], sizes: dict) -> Iterator[tuple[list[Frame], int]]:
+    """Groups `frames` by frame size into batches of ``sizes[(H, W)]`` frames; yields
+    (frames, real count): the last batch of a size is padded with copies of its last frame."""
+    pending: dict = {}
+    for frame in frames:
+        group = pending.setdefault(frame.raw.shape, [])
+        group.append(frame)
+        if len(group) == sizes[frame.raw.shape]:
+            yield pending.pop(frame.raw.shape), sizes[frame.raw.shape]
+    for shape, group in pending.items():
+        n = len(group)
+        yield group + [group[-1]] * (sizes[shape] - n), n
+
+
+def batch_sizes(found: Sequence[ThermalInput], batch_size: int) -> dict:
+    """{(H, W): frames per call}: `batch_size`, or fewer when a size has fewer frames."""
+    counts: dict = {}
+    for sequence in found:
+        for shape, n in sequence.shapes:
+            counts[shape] = counts.get(shape, 0) + n
+    return {shape: min(batch_size, n) for shape, n in counts.items()}
+
+
+class _Pipelined:
+    """Runs the model on batches while the previous batch's results are handed to `emit`:
+    ``run(batches)`` keeps one batch in flight on the device."""
+
+    def __init__(self, predictor: Predictor, emit):
+        self.predictor, self.emit = predictor, emit
+
+    def run(self, groups: Iterator[tuple[list[Frame], int]]) -> None:
+        in_flight = None
+        for frames, n in groups:
+            out = self.predictor.dispatch(np.stack([f.raw for f in frames]))
+            if in_flight is not None:
+                self._finish(*in_flight)
+            in_flight = (frames[:n], out)
+        if in_flight is not None:
+            self._finish(*in_flight)
+
+    def _finish(self, frames: list[Frame], out: dict) -> None:
+        images = self.predictor.fetch(out)
+        for i, frame in enumerate(frames):
+            self.emit(frame, _checked(frame.file, frame.name, {k: v[i] for k, v in images.items()}))
+
+
+class _Writers:
+    """A thread pool writing PNGs; `check` raises the first failed write (in order)."""
+
+    def __init__(self):
+        self.pool = ThreadPoolExecutor(WRITERS, thread_name_prefix="irdepth-write")
+        self.futures: list[tuple[str, Future]] = []
+        self.written: list[str] = []
+
+    def submit(self, path: str, image: np.ndarray) -> None:
+        self.futures.append((path, self.pool.submit(write_png, path, image)))
+        self.check(block=False)
+
+    def check(self, block: bool = True) -> None:
+        while self.futures and (block or self.futures[0][1].done()):
+            path, future = self.futures.pop(0)
+            future.result()
+            self.written.append(path)
+
+    def close(self) -> None:
+        """Waits for every submitted write (all of them, also after an error)."""
+        self.pool.shutdown(wait=True)
+
+
+# --------------------------------------------------------------------------- predict
+def predict_files(path: str, inputs: Sequence[str], out_dir: str,
+                  overrides: Sequence[str] = (), raw_bits: int | None = None,
+                  pattern: str | None = None, strict: bool = False,
+                  batch_size: int = DEFAULT_BATCH, video: bool = False,
+                  depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
+                  progress: bool = False) -> list[str]:
+    """Runs a trained model on raw frames and writes its outputs (see the module docstring).
+
+    Args:
+      path: a run's workdir or checkpoint directory.
+      inputs: raw frame files and folders (formats: `data.rawio`; a stack gives NAME_pNNNN).
+      out_dir: output directory.
+      overrides: ``key=value`` config overrides.
+      raw_bits: bit depth of the inputs' counts, 14 or 16 (default: the model's
+        data.raw_bits); a count over it is an error.
+      pattern, strict: which files of a folder are read, and whether a non-thermal one is an
+        error (see `thermal_inputs`).
+      batch_size: frames per model call (frames of one size; outputs do not depend on it).
+      video: one MP4 per input sequence instead of per-frame images; `depth_png_frames`
+        adds the 16-bit depth PNGs of its frames; `fps` is its frame rate.
+      progress: a progress bar (frames/s) on stderr.
+    Returns:
+      the written paths. All inputs are read (and checked) before anything is written.
+    Raises:
+      RunError naming the input file when a prediction is not finite (NaN / inf), before that
+      frame's files are written; WriteError naming the output file when it cannot be written
+      (complete files or none, e.g. on a full disk). The frames before are written completely.
+    """
+    from irdepth_jax.config import resolved_raw_bits
+    from irdepth_jax.imaging.raw import BIT_DEPTHS
+    from irdepth_jax.train.variables import load_model
+
+    if batch_size < 1:
+        raise _run_error(f"--batch-size {batch_size}: must be at least 1")
+    cfg, _, model = load_model(path, overrides)
+    if model["depth"] is not None and cfg.stage2.preprocessing == "rgb":
+        raise _run_error(f"{path}: this model takes visible RGB images "
+                         "(stage2.preprocessing=rgb), not raw frames")
+    trained_bits = resolved_raw_bits(cfg)
+    bits = trained_bits if raw_bits is None else raw_bits
+    if bits not in BIT_DEPTHS:
+        raise _run_error(f"--raw-bits {bits}: choose 14 or 16")
+    found = thermal_inputs(inputs, bits, pattern, strict)
+    if video:
+        _check_sequences(found)
+    if bits != trained_bits:
+        cfg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, raw_bits=bits))
+        if cfg.unet.raw_scale == "fixed" and model["unet"] is not None:
+            print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
+                  f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
+                  "a scale it did not see in training", file=sys.stderr)
+    make_dirs(out_dir)
+    predictor = Predictor(cfg, model, bits)
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=sum(f.frames for f in found), unit="frame", disable=not progress,
+               desc="predict", file=sys.stderr)
+    writers = _Writers()
+    try:
+        if video:
+            for sequence in found:
+                _predict_video(predictor, sequence, out_dir, batch_size, fps, depth_png_frames,
+                               writers, bar)
+        else:
+            files = [f for sequence in found for f in sequence.files]
+            sizes = batch_sizes(found, batch_size)
+
+            def emit(frame: Frame, images: dict) -> None:
+                for kind, image in output_pngs(images, cfg.data.max_depth).items():
+                    writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
+                bar.update(1)
+
+            _Pipelined(predictor, emit).run(
+                batches(_read_ahead(_frames(files, bits), READ_AHEAD * batch_size), sizes))
+        writers.check()
+    finally:
+        writers.close()
+        bar.close()
+    return writers.written
+
+
+def video_name(sequence: ThermalInput) -> str:
+    """The video file name of an input: the folder's or the stack file's name, ``.mp4``."""
+    base = os.path.basename(os.path.normpath(sequence.item))
+    return (base if os.path.isdir(sequence.item) else os.path.splitext(base)[0]) + ".mp4"
+
+
+def _check_sequences(found: Sequence[ThermalInput]) -> None:
+    """RunError for an input that is not one sequence: a single frame, or frames of several
+    sizes; or two inputs that would write the same video."""
+    names: dict = {}
+    for sequence in found:
+        if sequence.frames < 2:
+            raise _run_error(f"--video: {sequence.item} holds one frame; a video is made of a "
+                             "folder of frames, a multi-page TIFF, an (N, H, W) .npy or a FLIR "
+                             ".seq")
+        if len(sequence.shapes) > 1:
+            sizes = ", ".join(f"{h}x{w}" for (h, w), _ in sorted(sequence.shapes))
+            raise _run_error(f"--video: {sequence.item} has frames of several sizes ({sizes}); "
+                             "one video holds one frame size")
+        name = video_name(sequence)
+        if name in names:
+            raise _run_error(f"--video: {sequence.item} and {names[name]} would both write "
+                             f"{name} (predict them into separate --out folders)")
+        names[name] = sequence.item
+
+
+def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
+                   batch_size: int, fps: float, with_depth_png: bool, writers: _Writers,
+                   bar) -> None:
+    """Writes the MP4 of one sequence (and its depth PNGs when asked), frames in order."""
+    from irdepth_jax.video import VideoWriter
+
+    target = os.path.join(out_dir, video_name(sequence))
+    sizes = batch_sizes([sequence], batch_size)
+    max_depth = predictor.cfg.data.max_depth
+    video = VideoWriter(target, fps)
+
+    def emit(frame: Frame, images: dict) -> None:
+        video.write(video_panels(frame.raw, images, predictor.bits, max_depth))
+        if with_depth_png and "depth" in images:
+            writers.submit(os.path.join(out_dir, f"{frame.name}_depth.png"),
+                           depth_png(images["depth"]))
+        bar.update(1)
+
+    frames = _read_ahead(_frames(sequence.files, predictor.bits), READ_AHEAD * batch_size)
+    try:
+        _Pipelined(predictor, emit).run(batches(frames, sizes))
+    except KeyboardInterrupt:
+        partial = video.keep_partial()
+        if partial:
+            print(f"irdepth: interrupted: {partial} holds the first {video.frames} of "
+                  f"{sequence.frames} frames", file=sys.stderr)
+        raise
+    except BaseException:
+        video.abort()
+        raise
+    video.close()
+    writers.written.append(target)

@@ -1,0 +1,198 @@
+"""Model variables in one place: fresh ones (`init_unet`, `random_depth`, `init_depth` from
+released Depth Anything V2 weights) and stored ones (`load_stage1` for Stage II, `load_model`
+for eval / predict / export, `save_model` to write a model those read).
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from collections.abc import Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+from irdepth_jax.config import Config, from_dict, resolved_raw_bits
+from irdepth_jax.errors import RunError, one_line
+from irdepth_jax.models.pipeline import depth_model_config
+from irdepth_jax.models.unet import MTSAUNet
+from irdepth_jax.train.checkpoint import CheckpointError, find_checkpoint, read_meta, restore_items
+
+STAGE1_STAGES = ("stage1_i2", "stage1_i1")
+"""Checkpoints a Stage II run starts from: I-2, or I-1 when there is no I-2."""
+
+def init_key(seed: int) -> jax.Array:
+    """Parameter-initialisation key. The 'rbg' generator: XLA compiles a model's init (one
+    random draw per parameter) several times faster than with the default threefry."""
+    return jax.random.key(seed, impl="rbg")
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _init_unet(unet_cfg, key):
+    return MTSAUNet(unet_cfg).init(key, jnp.zeros((1, 32, 32), jnp.uint16), train=False)
+
+
+def init_unet(cfg: Config) -> dict:
+    """Fresh MTSA-UNet variables {'params', 'batch_stats'} (seed cfg.seed; any frame size)."""
+    variables = _init_unet(cfg.unet, init_key(cfg.seed))
+    return {"params": variables["params"], "batch_stats": variables["batch_stats"]}
+
+
+@functools.partial(jax.jit, static_argnums=(0, 1))
+def _init_depth(da_cfg, size, key):
+    from irdepth_jax.models.depth_anything import DepthAnythingV2
+    return DepthAnythingV2(da_cfg).init(key, jnp.zeros(size, jnp.float32))["params"]
+
+
+def random_depth(cfg: Config) -> dict:
+    """Random Depth Anything V2 params of `cfg.depth` (seed cfg.seed + 1): Stage II's start
+    without a checkpoint, and the template a Stage II checkpoint is restored into."""
+    return _init_depth(depth_model_config(cfg),
+                       (1, cfg.depth.input_height, cfg.depth.input_width, 3),
+                       init_key(cfg.seed + 1))
+
+
+def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
+    """Stage II's starting Depth Anything V2 params and a description of where they came from.
+
+    Without `depth.checkpoint`: `random_depth`. With it: the backbone from the file, and its
+    head by `depth.load_head`: 'auto' when the file's head kind (`depth.checkpoint_kind`, see
+    `weights.load_depth_anything`) is the one `depth.metric` trains, else a random head (how the
+    official metric fine-tuning starts from a relative checkpoint); 'true' the file's head,
+    refused when the kinds differ; 'false' a random head.
+
+    Returns (params, {'backbone': str, 'head': str}, plus 'max_depth': str when a loaded metric
+    head was trained for another range than `depth.max_depth`), for `RunLog.info`. Raises
+    RunError (one line naming the key or the file) for a bad setting, a missing, unreadable or
+    ambiguous file, or load_head=true with the other head kind.
+    """
+    d = cfg.depth
+    params = random_depth(cfg)
+    if not d.checkpoint:
+        return params, {"backbone": "random init (no depth.checkpoint)",
+                        "head": "random init (no depth.checkpoint)"}
+    load_head = str(d.load_head).lower()
+    if load_head not in ("auto", "true", "false"):
+        raise RunError(f"depth.load_head {d.load_head!r}: choose auto, true or false")
+    from irdepth_jax.weights import load_depth_anything
+    try:
+        file_cfg, loaded = load_depth_anything(d.checkpoint, encoder=d.encoder,
+                                               kind=d.checkpoint_kind, max_depth=d.max_depth)
+    except (OSError, ValueError) as err:
+        raise RunError(f"depth.checkpoint: {one_line(err)}") from None
+    file_kind, kind = ("metric" if m else "relative" for m in (file_cfg.metric, d.metric))
+    params = {**params, "pretrained": loaded["pretrained"]}
+    described = {"backbone": f"loaded from {d.checkpoint} (encoder {d.encoder})"}
+    if load_head == "false":
+        described["head"] = "random init: depth.load_head=false"
+    elif file_kind != kind and load_head == "true":
+        raise RunError(f"depth.load_head=true: {d.checkpoint} holds a {file_kind} head, "
+                       f"depth.metric={str(d.metric).lower()} trains a {kind} one: set "
+                       "depth.load_head=auto (backbone only), the other depth.metric, or "
+                       "depth.checkpoint_kind if the file's kind is misread")
+    elif file_kind != kind:
+        described["head"] = (f"random init: {d.checkpoint} holds a {file_kind} head, "
+                             f"depth.metric={str(d.metric).lower()} trains a {kind} one "
+                             "(backbone only, as the official metric fine-tuning starts)")
+    else:
+        params["depth_head"] = loaded["depth_head"]
+        depth_range = f", max_depth {file_cfg.max_depth:g} m" if file_cfg.metric else ""
+        described["head"] = f"loaded from {d.checkpoint} ({file_kind}{depth_range})"
+        if file_cfg.metric and file_cfg.max_depth != d.max_depth:
+            described["max_depth"] = (
+                f"warning: the head was trained for max_depth {file_cfg.max_depth:g} m; "
+                f"depth.max_depth={d.max_depth:g} scales its output by "
+                f"{d.max_depth / file_cfg.max_depth:.3g}")
+    return params, described
+
+
+def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
+    """Stage I variables from a Stage I run and what its segmentation branch was trained on:
+    ``{'labeled_frames': N, ...}`` (0 after I-1 only or I-2 without labels; None for an I-2
+    checkpoint written before this was recorded). One-line RunError if missing or mismatched,
+    or trained on raw counts of another bit depth than `cfg.data.raw_bits`."""
+    try:
+        directory, stage = find_checkpoint(path, STAGE1_STAGES)
+        items, meta = restore_items(directory, stage, {"model": init_unet(cfg)})
+        unet = dict(items["model"])
+    except CheckpointError as err:
+        raise RunError(f"--stage1-checkpoint: {err}") from None
+    # checkpoints written before data.raw_bits existed were trained on 14-bit counts
+    trained_bits = meta.get("config", {}).get("data", {}).get("raw_bits", 14)
+    if trained_bits != cfg.data.raw_bits:
+        raise RunError(f"--stage1-checkpoint {path}: Stage I was trained on {trained_bits}-bit "
+                       f"raw counts, this run has data.raw_bits={cfg.data.raw_bits}; use "
+                       f"data.raw_bits={trained_bits} (the same data) or retrain Stage I")
+    if meta.get("stage") == "stage1_i1":
+        return unet, {"labeled_frames": 0, "why": "Stage I-1 only (no I-2 checkpoint)"}
+    return unet, meta.get("segmentation") or {"labeled_frames": None,
+                                              "why": "not recorded (older checkpoint)"}
+
+
+def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, dict]:
+    """Loads a trained model for evaluation / prediction.
+
+    Args:
+      path: a run's workdir or one of its checkpoint directories.
+      overrides: ``key=value`` config overrides (e.g. data.max_depth).
+    Returns:
+      (config of the run, stage, {'unet': Stage I variables or None, 'depth': Depth Anything V2
+      params or None, 'segmentation': what the segmentation branch was trained on, as the
+      run recorded it (`load_stage1`), or None}).
+    """
+    from irdepth_jax.config import apply_overrides
+
+    try:
+        directory, stage = find_checkpoint(path)
+        meta = read_meta(directory)
+        cfg = apply_overrides(from_dict(meta["config"]), list(overrides))
+        segmentation = meta.get("segmentation")
+        if stage == "stage1_i1":
+            segmentation = {"labeled_frames": 0, "why": "Stage I-1 only (no I-2 checkpoint)"}
+        if stage.startswith("stage1"):
+            items, _ = restore_items(directory, stage, {"model": init_unet(cfg)})
+            return cfg, stage, {"unet": dict(items["model"]), "depth": None,
+                                "segmentation": segmentation}
+        templates = {"model": {"params": random_depth(cfg), "batch_stats": {}}}
+        has_unet = cfg.stage2.preprocessing == "hsv" or cfg.stage2.sky_loss
+        if has_unet:
+            templates["frozen"] = {"unet": init_unet(cfg)}
+        items, _ = restore_items(directory, stage, templates)
+    except CheckpointError as err:
+        raise RunError(str(err)) from None
+    unet = dict(items["frozen"]["unet"]) if has_unet else None
+    return cfg, stage, {"unet": unet, "depth": items["model"]["params"],
+                        "segmentation": segmentation}
+
+
+def save_model(workdir: str, cfg: Config, unet_vars: dict | None, da_params: Any,
+               segmentation: dict | None = None) -> str:
+    """Writes a Stage II checkpoint that `load_model` (so eval, predict, export) reads: e.g. a
+    Stage I model with released Depth Anything V2 weights, or untrained weights for a benchmark.
+
+    Args:
+      workdir: a new run directory (its ``checkpoints/stage2``).
+      cfg: the config the variables belong to (`data.raw_bits` 14 or 16).
+      unet_vars: Stage I ``{'params', 'batch_stats'}`` (None for a baseline without Stage I).
+      da_params: Depth Anything V2 params.
+      segmentation: what the segmentation branch was trained on (recorded in the meta).
+    Returns:
+      the checkpoint directory.
+    """
+    from irdepth_jax.config import to_dict
+    from irdepth_jax.train.checkpoint import Checkpointer
+    from irdepth_jax.train.state import TrainState, stage2_optimizer
+
+    resolved_raw_bits(cfg)
+    tx, lr_fns = stage2_optimizer(cfg, da_params, 1)
+    state = TrainState.create(da_params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
+    directory = os.path.join(workdir, "checkpoints", "stage2")
+    ckpt = Checkpointer(directory, "stage2")
+    try:
+        ckpt.save(0, state, {"config": to_dict(cfg), "segmentation": segmentation},
+                  frozen=None if unet_vars is None else {"unet": unet_vars}, force=True)
+        ckpt.wait()
+    finally:
+        ckpt.close()
+    return directory

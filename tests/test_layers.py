@@ -1,0 +1,106 @@
+"""The package's data flow is one way (README "Architecture"): no module imports one of a later
+layer, at the top of the file or inside a function, and there is no import cycle."""
+
+import ast
+import pathlib
+
+PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
+
+LAYERS = [
+    ("foundation", ["config", "configs", "errors", "fileio", "video"]),
+    ("imaging", ["imaging"]),
+    ("models", ["models", "weights"]),
+    ("losses and metrics", ["losses", "metrics"]),
+    ("data", ["data"]),
+    ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.checkpoint",
+                            "train.workdir_lock", "train.runlog", "train.variables"]),
+    ("evaluators", ["evaluators"]),
+    ("training loops", ["train.phase", "train.validate", "train.stages"]),
+    ("runs and deployment", ["evaluate", "predict", "export", "workflow"]),
+    ("command line", ["cli", "__main__"]),
+]
+
+
+def module_name(path: pathlib.Path) -> str:
+    parts = list(path.relative_to(PACKAGE).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts = parts[:-1]
+    return ".".join(parts)
+
+
+def layer_of(module: str) -> int | None:
+    """Index in LAYERS of a module (dotted, without 'irdepth_jax.'): its longest listed prefix."""
+    best, index = -1, None
+    for i, (_, prefixes) in enumerate(LAYERS):
+        for prefix in prefixes:
+            if (module == prefix or module.startswith(prefix + ".")) and len(prefix) > best:
+                best, index = len(prefix), i
+    return index
+
+
+def imports(path: pathlib.Path) -> set[str]:
+    """Package modules `path` imports anywhere in the file (dotted, without 'irdepth_jax.')."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            if node.module == "irdepth_jax":
+                found.update(alias.name for alias in node.names)
+            elif node.module.startswith("irdepth_jax."):
+                base = node.module[len("irdepth_jax."):]
+                for alias in node.names:  # `from irdepth_jax.train import phase` is a module
+                    child = PACKAGE.joinpath(*base.split("."), alias.name)
+                    sub = child.with_suffix(".py").exists() or child.is_dir()
+                    found.add(f"{base}.{alias.name}" if sub else base)
+        elif isinstance(node, ast.Import):
+            found.update(a.name[len("irdepth_jax."):] for a in node.names
+                         if a.name.startswith("irdepth_jax."))
+    return found
+
+
+def graph() -> dict[str, set[str]]:
+    return {module_name(p): imports(p) for p in PACKAGE.rglob("*.py")}
+
+
+def test_every_module_has_a_layer():
+    assert [m for m in graph() if m and layer_of(m) is None] == []
+
+
+def test_no_module_imports_a_later_layer():
+    upward = []
+    for module, deps in graph().items():
+        if not module:
+            continue
+        for dep in deps:
+            if layer_of(dep) is not None and layer_of(dep) > layer_of(module):
+                upward.append(f"{module} ({LAYERS[layer_of(module)][0]}) imports {dep} "
+                              f"({LAYERS[layer_of(dep)][0]})")
+    assert upward == []
+
+
+def test_no_import_cycle():
+    edges = graph()
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node, stack):
+        state[node] = 1
+        for dep in sorted(edges.get(node, ())):
+            dep = dep if dep in edges else dep.rsplit(".", 1)[0]
+            if state.get(dep) == 1:
+                cycles.append(stack[stack.index(dep):] + [dep])
+            elif dep in edges and not state.get(dep):
+                visit(dep, stack + [dep])
+        state[node] = 2
+
+    for module in sorted(edges):
+        if not state.get(module):
+            visit(module, [module])
+    # a package's __init__ importing its own submodules is not a cycle of ours
+    assert [c for c in cycles if len(set(c)) > 1 and "" not in c] == []
+
+
+def test_the_checker_sees_function_level_imports(tmp_path):
+    source = tmp_path / "m.py"
+    source.write_text("def f():\n    from irdepth_jax.cli import main\n    from irdepth_jax.train "
+                      "import phase\n")
+    assert imports(source) == {"cli", "train.phase"}

@@ -1,0 +1,69 @@
+"""The trained tiny runs the CLI tests share: one synthetic dataset, one Stage I run (4 + 4
+steps) and one Stage II run (2 steps) on it per test session, each made on first use by the
+session fixtures of conftest.py (`synthetic_data`, `stage1_run`, `stage2_run`).
+
+They are read-only: a test that continues, overwrites, interrupts or evaluates into a run works
+on a copy (`copy_run`), and the session checks at its end that no shared file changed
+(`Fingerprint`)."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import shutil
+
+QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
+"""One device, a log line every step, no evaluation, a checkpoint at the end of each phase."""
+
+DATA = dict(n=24, labeled=12, height=32, width=48, seed=1)
+"""The shared dataset: 24 frames of 32x48 (12 labelled); test_export's too (same compiled
+steps)."""
+
+STEPS = {"stage1": 4, "stage2": 2}
+"""Optimizer steps per phase: Stage I-1 and I-2 each 4, Stage II 2."""
+
+
+def write_data(path):
+    from irdepth_jax.data.folder import write_synthetic_dataset
+
+    write_synthetic_dataset(path, **DATA, progress=False)
+    return path
+
+
+def train(stage: str, data, work, *extra) -> None:
+    """`irdepth train <stage> --steps STEPS[stage]` with QUICK, which must succeed."""
+    from irdepth_jax import cli
+
+    argv = ["train", stage, "--data", data, "--workdir", work, "--steps", STEPS[stage], *extra,
+            *QUICK]
+    assert cli.main([str(a) for a in argv]) == 0, argv
+
+
+def copy_run(run, dest):
+    """A private copy of a shared run (or dataset) at `dest`, to change at will."""
+    shutil.copytree(run, dest, symlinks=True)
+    return dest
+
+
+class Fingerprint:
+    """Size and SHA-1 of every file under a directory, to check it was left as it was."""
+
+    def __init__(self, root):
+        self.root = str(root)
+        self.files = self._read()
+
+    def _read(self) -> dict[str, tuple[int, str]]:
+        files = {}
+        for folder, _, names in os.walk(self.root):
+            for name in names:
+                path = os.path.join(folder, name)
+                with open(path, "rb") as f:
+                    digest = hashlib.sha1(f.read()).hexdigest()
+                files[os.path.relpath(path, self.root)] = (os.path.getsize(path), digest)
+        return files
+
+    def changes(self) -> list[str]:
+        """Files added, removed or changed since the fingerprint was taken."""
+        now = self._read()
+        return sorted(name for name in set(now) | set(self.files)
+                      if now.get(name) != self.files.get(name))
