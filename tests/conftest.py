@@ -13,6 +13,8 @@ os.environ["XLA_FLAGS"] = (
 ).strip()
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
+    # made by the pytest process (with -n N, before it starts the xdist workers, which inherit
+    # the variable: all share one cache) and removed when it exits
     _cache = tempfile.mkdtemp(prefix="irdepth_test_xla_")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
@@ -80,3 +82,16 @@ def stage2_run(synthetic_data, stage1_run, tmp_path_factory):
     work = tmp_path_factory.mktemp("shared_stage2") / "s2"
     train("stage2", synthetic_data, work, "--stage1-checkpoint", stage1_run)
     yield from _read_only(work, "Stage II run")
+
+
+@pytest.fixture(scope="session")
+def learned_run(tmp_path_factory):
+    """(workdir, result) of `workflow.train_and_evaluate` on the shortened tiny config
+    (`trained_runs.LEARNING`): data/, stage1/, stage2/ (with eval_test.json)."""
+    from trained_runs import train_and_evaluate_learning
+
+    work = tmp_path_factory.mktemp("learned") / "run"
+    result = train_and_evaluate_learning(work)
+    for path in _read_only(work, "learned run"):
+        yield path, result
+

@@ -26,7 +26,7 @@ def make_state(width=4, seed=0):
     variables = Net(width).init(jax.random.PRNGKey(seed), jnp.zeros((2, 3)))
     params = {"pretrained": variables["params"]["Dense_0"],
               "depth_head": variables["params"]["depth_head"]}
-    tx, lr_fns = stage2_optimizer(get_config("tiny"), params, total_steps=10)
+    tx, lr_fns = stage2_optimizer(get_config("tiny"), total_steps=10)
     return TrainState.create(params, variables["batch_stats"], tx, jax.random.PRNGKey(seed), lr_fns)
 
 

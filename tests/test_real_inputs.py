@@ -89,7 +89,7 @@ def test_predict_real_camera_files(run16, realdata, tmp_path, capsys):
     rgb = cv2.imread(str(tmp_path / "left" / "000011_thr_rgb.png"))
     assert rgb.shape == (256, 640, 3) and rgb.dtype == np.uint8
     code, _, err = run(["predict", "--checkpoint", run16, "--out", tmp_path / "tiff",
-                        realdata / "flir" / "duopror_radiometric.tiff"], capsys)
+                        "--no-progress", realdata / "flir" / "duopror_radiometric.tiff"], capsys)
     assert code == 0 and err == "", err  # no OpenCV TIFF-tag warning
     assert outputs(tmp_path / "tiff") == ["duopror_radiometric_hsv.png",
                                           "duopror_radiometric_rgb.png"]
@@ -114,7 +114,8 @@ def test_predict_fff_files(run16, realdata, tmp_path, capsys):
 
 def test_predict_mixed_folder(run16, realdata, tmp_path, capsys):
     left = realdata / "ms2_sample" / "left"
-    code, _, err = run(["predict", "--checkpoint", run16, "--out", tmp_path / "a", left], capsys)
+    code, _, err = run(["predict", "--checkpoint", run16, "--out", tmp_path / "a",
+                        "--no-progress", left], capsys)
     assert code == 0, err
     assert err.strip() == ("irdepth: skipped 4 of 6 files that are not raw thermal frames "
                            "(8-bit or colour): 000011_nir.png, 000011_rgb.png, 002079_nir.png, "

@@ -1,18 +1,16 @@
 """The method learns: `workflow.train_and_evaluate` (what `irdepth quickstart` runs) improves
 Stage I PSNR / SSIM / mIoU and Stage II d1 / AbsRel clearly over the same models untrained.
 
-The fast test (default suite) trains a shortened tiny run (48 frames of 32x48, 4 epochs per
-phase); the slow one (`python -m pytest -m slow tests/test_train_learning.py`, 2-4 minutes) the
-whole `tiny` preset, as the quickstart does.
+The fast test (default suite) checks the session's shortened tiny run (conftest `learned_run`,
+also what the quickstart notebook test shows); the slow one
+(`python -m pytest -m slow tests/test_train_learning.py`, 2-4 minutes) the whole `tiny` preset,
+as the quickstart does.
 """
 
 import pytest
 
-from irdepth_jax.config import apply_overrides, get_config
+from irdepth_jax.config import get_config
 from irdepth_jax.workflow import train_and_evaluate
-
-FAST = ["data.num_frames=48", "data.num_labeled=24", "data.height=32", "data.width=48",
-        "stage1.epochs_i1=4", "stage1.epochs_i2=4", "stage2.epochs=4", "eval_every=0"]
 
 
 def learned(cfg, workdir):
@@ -22,8 +20,10 @@ def learned(cfg, workdir):
     return result["before"], result["after"]
 
 
-def test_shortened_tiny_run_learns(tmp_path):
-    before, after = learned(apply_overrides(get_config("tiny"), FAST), tmp_path / "w")
+def test_shortened_tiny_run_learns(learned_run):
+    """`trained_runs.LEARNING`: 48 frames of 32x48, 4 epochs per phase (the session's run)."""
+    _, result = learned_run
+    before, after = result["before"], result["after"]
     # Measured (seed 0): PSNR 13.6 -> 16.2 dB, SSIM 0.23 -> 0.54, mIoU 0.017 -> 0.16,
     # d1 0.08 -> 0.51, AbsRel 4.0 -> 0.28.
     assert after["stage1"]["psnr"] > before["stage1"]["psnr"] + 1.5

@@ -68,7 +68,7 @@ def test_stage1_i2_group_rates(unet_vars):
     cfg = apply_overrides(CFG, ["stage1.optimizer=adamw", "stage1.weight_decay=0",
                                 "stage1.stage12_learning_rate=0.01",
                                 "stage1.seg_lr_multiplier=10"])
-    tx, lr_fns = stage1_optimizer(cfg, "stage1_i2", unet_vars["params"])
+    tx, lr_fns = stage1_optimizer(cfg, "stage1_i2")
     upd = _first_update(tx, unet_vars["params"])
     np.testing.assert_allclose(upd["head_seg"]["kernel"], -0.1, rtol=1e-4)
     np.testing.assert_allclose(upd["dec_seg_up0"]["up"]["kernel"], -0.1, rtol=1e-4)
@@ -77,17 +77,27 @@ def test_stage1_i2_group_rates(unet_vars):
     assert float(lr_fns["seg"](0)) == pytest.approx(0.1)
     # single-task: recon / gradient branches frozen, the rest as before
     single = apply_overrides(cfg, ["stage1.multitask=false"])
-    tx, _ = stage1_optimizer(single, "stage1_i2", unet_vars["params"])
+    tx, _ = stage1_optimizer(single, "stage1_i2")
     upd = _first_update(tx, unet_vars["params"])
     assert float(jnp.abs(upd["head_recon"]["kernel"]).max()) == 0.0
     assert float(jnp.abs(upd["dec_grad_up2"]["fuse"]["conv0"]["kernel"]).max()) == 0.0
     np.testing.assert_allclose(upd["head_seg"]["kernel"], -0.1, rtol=1e-4)
 
 
+def test_optimizers_are_shared_by_equal_runs():
+    """Equal configs get the same optimizer object (a static field of TrainState), so a second
+    run reuses the first one's compiled train step; another config gets its own."""
+    assert stage1_optimizer(CFG, "stage1_i2") is stage1_optimizer(CFG, "stage1_i2")
+    assert stage2_optimizer(CFG, 10) is stage2_optimizer(CFG, 10)
+    other = apply_overrides(CFG, ["stage1.stage12_learning_rate=0.5"])
+    assert stage1_optimizer(other, "stage1_i2") is not stage1_optimizer(CFG, "stage1_i2")
+    assert stage2_optimizer(CFG, 11) is not stage2_optimizer(CFG, 10)
+
+
 def test_stage2_rates_and_poly_decay():
     cfg = apply_overrides(CFG, ["stage2.learning_rate=1e-3", "stage2.weight_decay=0"])
     params = {"pretrained": {"w": jnp.zeros(3)}, "depth_head": {"w": jnp.zeros(2)}}
-    tx, lr_fns = stage2_optimizer(cfg, params, total_steps=10)
+    tx, lr_fns = stage2_optimizer(cfg, total_steps=10)
     upd = _first_update(tx, params)
     np.testing.assert_allclose(upd["pretrained"]["w"], -1e-3, rtol=1e-4)
     np.testing.assert_allclose(upd["depth_head"]["w"], -1e-2, rtol=1e-4)
@@ -107,8 +117,7 @@ def test_stage1_targets_by_hand():
 
 @pytest.mark.parametrize("phase", ["stage1_i1", "stage1_i2"])
 def test_stage1_step_is_finite_and_learns(unet_vars, batch, phase):
-    tx, lr_fns = stage1_optimizer(apply_overrides(CFG, ["stage1.learning_rate=3e-3"]), phase,
-                                  unet_vars["params"])
+    tx, lr_fns = stage1_optimizer(apply_overrides(CFG, ["stage1.learning_rate=3e-3"]), phase)
     state = TrainState.create(unet_vars["params"], unet_vars["batch_stats"], tx,
                               jax.random.PRNGKey(0), lr_fns)
     step = jax.jit(make_train_step(stage1_loss_fn(CFG, phase), None, CFG.stage1.accum_steps))

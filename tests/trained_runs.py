@@ -23,6 +23,21 @@ STEPS = {"stage1": 4, "stage2": 2}
 """Optimizer steps per phase: Stage I-1 and I-2 each 4, Stage II 2."""
 
 
+LEARNING = ["data.num_frames=48", "data.num_labeled=24", "data.height=32", "data.width=48",
+            "stage1.epochs_i1=4", "stage1.epochs_i2=4", "stage2.epochs=4", "eval_every=0"]
+"""A shortened tiny run that learns (48 frames of 32x48, 4 epochs per phase): the fast learning
+test's and the quickstart notebook's (`learned_run`)."""
+
+
+def train_and_evaluate_learning(workdir):
+    """`workflow.train_and_evaluate` of the `LEARNING` config into `workdir`; its result."""
+    from irdepth_jax.config import apply_overrides, get_config
+    from irdepth_jax.workflow import train_and_evaluate
+
+    return train_and_evaluate(apply_overrides(get_config("tiny"), LEARNING), str(workdir),
+                              devices=1, progress=False, log=lambda line: None)
+
+
 def write_data(path):
     from irdepth_jax.data.folder import write_synthetic_dataset
 

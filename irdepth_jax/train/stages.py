@@ -93,7 +93,7 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         for phase_name in ("stage1_i1", "stage1_i2"):
             dataset, idx = frames[phase_name]
             total = totals[phase_name]
-            tx, lr_fns = stage1_optimizer(cfg, phase_name, variables["params"])
+            tx, lr_fns = stage1_optimizer(cfg, phase_name)
             state = TrainState.create(variables["params"], variables["batch_stats"], tx,
                                       jax.random.PRNGKey(cfg.seed), lr_fns)
             evaluate = ((lambda st: evaluate_stage1(cfg, _unet_vars(st), *val, dp,
@@ -205,7 +205,7 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         log.info("stage2", **depth_init)
         total = steps_for(s2.epochs, opts.steps if opts.steps is not None else s2.steps,
                           len(train_idx), s2.batch_size)
-        tx, lr_fns = stage2_optimizer(cfg, params, total)
+        tx, lr_fns = stage2_optimizer(cfg, total)
         state = TrainState.create(params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
         evaluate = ((lambda st: evaluate_stage2(cfg, unet, st.params, *val, dp)["all"])
                     if opts.eval and len(val[1]) else None)

@@ -185,7 +185,7 @@ def save_model(workdir: str, cfg: Config, unet_vars: dict | None, da_params: Any
     from irdepth_jax.train.state import TrainState, stage2_optimizer
 
     resolved_raw_bits(cfg)
-    tx, lr_fns = stage2_optimizer(cfg, da_params, 1)
+    tx, lr_fns = stage2_optimizer(cfg, 1)
     state = TrainState.create(da_params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
     directory = os.path.join(workdir, "checkpoints", "stage2")
     ckpt = Checkpointer(directory, "stage2")
