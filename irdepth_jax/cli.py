@@ -324,29 +324,23 @@ def cmd_quickstart(args) -> int:
 
 
 # --------------------------------------------------------------------------- parser
-def build_parser() -> argparse.ArgumentParser:
-    from irdepth_jax.config import available_presets
-    from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
+def _progress_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-progress", action="store_true", help="no progress bars")
 
-    parser = argparse.ArgumentParser(
-        prog="irdepth",
-        description="Monocular depth from raw 14-bit thermal frames: MTSA-UNet -> HSV -> "
-                    "Depth Anything V2 (JAX/Flax).",
-        epilog="Start with `irdepth quickstart`; `irdepth COMMAND --help` for each command.")
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    def progress_flag(p):
-        p.add_argument("--no-progress", action="store_true", help="no progress bars")
+def _strict_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--strict", action="store_true",
+                   help="MS2: fail when a sequence named by a split list is not on disk "
+                        "(default: read the sequences present, warn once per split)")
 
-    def strict_flag(p):
-        p.add_argument("--strict", action="store_true",
-                       help="MS2: fail when a sequence named by a split list is not on disk "
-                            "(default: read the sequences present, warn once per split)")
 
-    def compile_cache_flag(p):
-        p.add_argument("--no-compile-cache", action="store_true",
-                       help="do not use the persistent XLA compilation cache")
+def _compile_cache_flag(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--no-compile-cache", action="store_true",
+                   help="do not use the persistent XLA compilation cache")
 
+
+def _add_synth(sub) -> None:
+    """The `irdepth synth` sub-command."""
     p = sub.add_parser("synth", help="render a synthetic LWIR dataset (our folder format)",
                        description="Render procedural LWIR street scenes (raw 14-bit, 8-bit, RGB, "
                                    "LiDAR-like depth, labels) into a folder dataset.")
@@ -358,8 +352,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="frame size, e.g. 256x320 (default 64x80)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
-    progress_flag(p)
+    _progress_flag(p)
     p.set_defaults(func=cmd_synth)
+
+
+def _add_train(sub) -> None:
+    """The `irdepth train` sub-command."""
+    from irdepth_jax.config import available_presets
 
     p = sub.add_parser(
         "train", help="train Stage I (I-1 then I-2) or Stage II",
@@ -381,7 +380,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="dataset directory (folder format or MS2)")
     p.add_argument("--format", default="auto", choices=("auto", "folder", "ms2"),
                    help="dataset format (default: auto-detect)")
-    strict_flag(p)
+    _strict_flag(p)
     p.add_argument("--workdir", required=True, help="run directory")
     resume = p.add_mutually_exclusive_group()
     resume.add_argument("--resume", action="store_true",
@@ -401,11 +400,14 @@ def build_parser() -> argparse.ArgumentParser:
                    help="multi-host: coordinator address (with --num-processes, --process-id)")
     p.add_argument("--num-processes", type=int, help="multi-host: number of processes")
     p.add_argument("--process-id", type=int, help="multi-host: this process's index")
-    compile_cache_flag(p)
-    progress_flag(p)
+    _compile_cache_flag(p)
+    _progress_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
     p.set_defaults(func=cmd_train)
 
+
+def _add_eval(sub) -> None:
+    """The `irdepth eval` sub-command."""
     p = sub.add_parser("eval", help="metric tables of a trained run (Markdown + JSON)",
                        description="Evaluate a run on a split: depth d1 d2 d3 AbsRel SqRel RMSE "
                                    "RMSE-log log10 SiLog (Stage II) and PSNR SSIM entropy mIoU "
@@ -417,7 +419,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--format", default="auto", choices=("auto", "folder", "ms2"),
                    help="dataset format (default: auto-detect)")
     p.add_argument("--split", default="test", help="split to evaluate (default test)")
-    strict_flag(p)
+    _strict_flag(p)
     p.add_argument("--stride", type=int, default=1, metavar="N",
                    help="evaluate frames[0:-1:N] of the split's frame list (all sequences "
                         "concatenated), as the official MS2 loader does; the MS2 test protocol "
@@ -427,10 +429,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "median scaling or least-squares scale and shift (default none); "
                         "predictions are then clamped to [data.min_depth, data.max_depth]")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
-    compile_cache_flag(p)
+    _compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
                    help="config overrides (e.g. data.max_depth=50)")
     p.set_defaults(func=cmd_eval)
+
+
+def _add_predict(sub) -> None:
+    """The `irdepth predict` sub-command."""
+    from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
 
     p = sub.add_parser("predict", help="depth maps from raw thermal frames",
                        description="Run a trained model on raw thermal frames: 16-bit PNG, "
@@ -474,10 +481,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help=f"frame rate of the videos (default {DEFAULT_FPS:g})")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
-    compile_cache_flag(p)
-    progress_flag(p)
+    _compile_cache_flag(p)
+    _progress_flag(p)
     p.set_defaults(func=cmd_predict, overrides=[])
 
+
+def _add_export(sub) -> None:
+    """The `irdepth export` sub-command."""
     p = sub.add_parser("export", help="a Stage II model as one ONNX or StableHLO file",
                        description="Export raw (N, H, W) uint16 counts -> depth (N, H, W) "
                                    "float32 metres (the whole HSV pipeline, variables as "
@@ -499,8 +509,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--sample", metavar="FILE",
                    help="raw frame file (HxW) for the export-time check (default: rendered "
                         "synthetic frames)")
-    compile_cache_flag(p)
+    _compile_cache_flag(p)
     p.set_defaults(func=cmd_export)
+
+
+def _add_quickstart(sub) -> None:
+    """The `irdepth quickstart` sub-command."""
+    from irdepth_jax.config import available_presets
 
     p = sub.add_parser("quickstart", help="synth -> Stage I -> Stage II -> eval on a tiny model",
                        description="The whole pipeline on synthetic data with the tiny preset: "
@@ -512,10 +527,21 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--preset", default="tiny", choices=available_presets(),
                    help="config preset, irdepth_jax/configs/NAME.py (default tiny)")
     p.add_argument("--devices", type=int, help="number of devices (default: all)")
-    compile_cache_flag(p)
-    progress_flag(p)
+    _compile_cache_flag(p)
+    _progress_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides")
     p.set_defaults(func=cmd_quickstart)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="irdepth",
+        description="Monocular depth from raw 14-bit thermal frames: MTSA-UNet -> HSV -> "
+                    "Depth Anything V2 (JAX/Flax).",
+        epilog="Start with `irdepth quickstart`; `irdepth COMMAND --help` for each command.")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    for add in (_add_synth, _add_train, _add_eval, _add_predict, _add_export, _add_quickstart):
+        add(sub)
     return parser
 
 

@@ -17,7 +17,6 @@ raw tone-mapped | pseudo-RGB of the HSV image | coloured depth side by side, and
 from __future__ import annotations
 
 import dataclasses
-import fnmatch
 import os
 import queue
 import sys
@@ -28,122 +27,18 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from irdepth_jax.config import Config
+from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
+from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_png
 
 DEFAULT_BATCH = 4
 """Frames per model call (`experiments/bench_predict.py` measures 1 vs 8)."""
 DEFAULT_FPS = 15.0
 """Frame rate of the depth videos (MS2's thermal camera records at 15 Hz)."""
-SKIPPED_NAMES_SHOWN = 8
-"""Skipped files named in predict's summary line (the rest are counted)."""
 READ_AHEAD = 2
 """Batches decoded ahead of the model."""
 WRITERS = 2
 """Threads encoding and writing output files (PNG encoding releases the GIL)."""
-
-
-def _run_error(message: str) -> Exception:
-    from irdepth_jax.errors import RunError
-
-    return RunError(message)
-
-
-def list_inputs(inputs: Sequence[str], pattern: str | None = None
-                ) -> list[tuple[str, list[str]]]:
-    """The files `inputs` name, per input: (input, its files).
-
-    A file stands for itself; a folder for its files (not sub-folders) whose names match the
-    glob `pattern` (default: every file with a `data.rawio.RAW_SUFFIXES` suffix), sorted.
-    RunError (one line) for a missing path or a folder with no such file.
-    """
-    from irdepth_jax.data.rawio import RAW_SUFFIXES
-
-    listed = []
-    for item in inputs:
-        if os.path.isdir(item):
-            names = sorted(n for n in os.listdir(item) if os.path.isfile(os.path.join(item, n))
-                           and (fnmatch.fnmatch(n, pattern) if pattern
-                                else n.lower().endswith(RAW_SUFFIXES)))
-            if not names:
-                wanted = (f"--glob {pattern!r}" if pattern
-                          else f"a raw frame suffix ({', '.join(RAW_SUFFIXES)})")
-                raise _run_error(f"{item}: no file matches {wanted}")
-            listed.append((item, [os.path.join(item, n) for n in names]))
-        elif os.path.isfile(item):
-            listed.append((item, [item]))
-        else:
-            raise _run_error(f"{item}: no such file or directory")
-    return listed
-
-
-@dataclasses.dataclass(frozen=True)
-class ThermalInput:
-    """One input of `irdepth predict` (a file or folder) and its raw thermal files."""
-
-    item: str
-    files: tuple[str, ...]
-    frames: int
-    """How many frames the files hold."""
-    shapes: tuple[tuple[tuple[int, int], int], ...]
-    """((H, W), number of frames of that size) of the files' frames."""
-
-
-def thermal_inputs(inputs: Sequence[str], bits: int, pattern: str | None = None,
-                   strict: bool = False) -> list[ThermalInput]:
-    """The raw thermal files among `inputs` (files and folders, see `list_inputs`), each read
-    and checked as `bits`-bit counts (`data.rawio.read_frames`), per input.
-
-    In a folder, 8-bit and colour images (visible / NIR frames beside the thermal ones) are
-    skipped and named in one ``irdepth: skipped ...`` line on stderr; with `strict` they are an
-    error. A file named in `inputs` must be a thermal frame, and so must a folder hold at least
-    one. Outputs are named by frame: two frames of the same name are an error.
-
-    Raises:
-      RunError / `data.rawio.RawFileError` (ValueErrors, one line naming the file).
-    """
-    from irdepth_jax.data.rawio import NotThermalError, read_frames
-
-    found, skipped, owner = [], [], {}
-    in_folders = 0
-    for item, files in list_inputs(inputs, pattern):
-        folder = os.path.isdir(item)
-        in_folders += len(files) if folder else 0
-        kept, frames, shapes = [], 0, {}
-        for f in files:
-            try:
-                read = read_frames(f, bits)
-            except NotThermalError as err:
-                if strict or not folder:
-                    hint = " (--strict: pick the thermal files with --glob)" if folder else ""
-                    raise _run_error(f"{err}{hint}") from None
-                skipped.append(f)
-                continue
-            for name, raw in read:
-                if name in owner:
-                    raise _run_error(f"{f} and {owner[name]}: same name {name!r}, their outputs "
-                                     "would overwrite each other (predict them into separate "
-                                     "--out folders)")
-                owner[name] = f
-                shapes[raw.shape] = shapes.get(raw.shape, 0) + 1
-            kept.append(f)
-            frames += len(read)
-        if folder and not kept:
-            raise _run_error(f"{item}: none of its {len(files)} files is a raw thermal frame "
-                             "(all 8-bit or colour images)")
-        found.append(ThermalInput(item, tuple(kept), frames, tuple(shapes.items())))
-    if skipped:
-        names = [os.path.basename(f) for f in skipped]
-        more = len(names) - SKIPPED_NAMES_SHOWN
-        shown = ", ".join(names[:SKIPPED_NAMES_SHOWN]) + (f" and {more} more" if more > 0 else "")
-        print(f"irdepth: skipped {len(skipped)} of {in_folders} files that are not raw thermal "
-              f"frames (8-bit or colour): {shown}", file=sys.stderr)
-    return found
-
-
-def thermal_files(inputs: Sequence[str], bits: int, pattern: str | None = None,
-                  strict: bool = False) -> list[str]:
-    """The raw thermal files among `inputs`, in order (`thermal_inputs`, flattened)."""
-    return [f for found in thermal_inputs(inputs, bits, pattern, strict) for f in found.files]
 
 
 def colorize_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
@@ -213,7 +108,7 @@ def _checked(file: str, name: str, images: dict) -> dict:
     for kind, values in images.items():
         bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
         if bad:
-            raise _run_error(
+            raise RunError(
                 f"{file}: the model predicted non-finite {kind} (NaN / inf) on {bad} of "
                 f"{np.size(values)} values of frame {name!r}; stopped before writing its files")
     return images
@@ -394,15 +289,15 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     from irdepth_jax.train.variables import load_model
 
     if batch_size < 1:
-        raise _run_error(f"--batch-size {batch_size}: must be at least 1")
+        raise RunError(f"--batch-size {batch_size}: must be at least 1")
     cfg, _, model = load_model(path, overrides)
     if model["depth"] is not None and cfg.stage2.preprocessing == "rgb":
-        raise _run_error(f"{path}: this model takes visible RGB images "
+        raise RunError(f"{path}: this model takes visible RGB images "
                          "(stage2.preprocessing=rgb), not raw frames")
     trained_bits = resolved_raw_bits(cfg)
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:
-        raise _run_error(f"--raw-bits {bits}: choose 14 or 16")
+        raise RunError(f"--raw-bits {bits}: choose 14 or 16")
     found = thermal_inputs(inputs, bits, pattern, strict)
     if video:
         _check_sequences(found)
@@ -454,16 +349,16 @@ def _check_sequences(found: Sequence[ThermalInput]) -> None:
     names: dict = {}
     for sequence in found:
         if sequence.frames < 2:
-            raise _run_error(f"--video: {sequence.item} holds one frame; a video is made of a "
+            raise RunError(f"--video: {sequence.item} holds one frame; a video is made of a "
                              "folder of frames, a multi-page TIFF, an (N, H, W) .npy or a FLIR "
                              ".seq")
         if len(sequence.shapes) > 1:
             sizes = ", ".join(f"{h}x{w}" for (h, w), _ in sorted(sequence.shapes))
-            raise _run_error(f"--video: {sequence.item} has frames of several sizes ({sizes}); "
+            raise RunError(f"--video: {sequence.item} has frames of several sizes ({sizes}); "
                              "one video holds one frame size")
         name = video_name(sequence)
         if name in names:
-            raise _run_error(f"--video: {sequence.item} and {names[name]} would both write "
+            raise RunError(f"--video: {sequence.item} and {names[name]} would both write "
                              f"{name} (predict them into separate --out folders)")
         names[name] = sequence.item
 
