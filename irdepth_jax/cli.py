@@ -439,6 +439,7 @@ def _add_predict(sub) -> None:
     """The `irdepth predict` sub-command."""
     from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
 
+
     p = sub.add_parser("predict", help="depth maps from raw thermal frames",
                        description="Run a trained model on raw thermal frames: 16-bit PNG, "
                                    "16-bit TIFF (multi-page: one frame per page), .npy ((H, W) "
@@ -471,8 +472,9 @@ def _add_predict(sub) -> None:
     p.add_argument("--strict", action="store_true",
                    help="fail on an 8-bit or colour file in a folder (default: skip it, named "
                         "in one summary line)")
-    p.add_argument("--batch-size", type=int, default=DEFAULT_BATCH, metavar="N",
-                   help=f"frames per model call (default {DEFAULT_BATCH}); frames are grouped "
+    p.add_argument("--batch-size", type=int, default=None, metavar="N",
+                   help=f"frames per model call (default {DEFAULT_BATCH['cpu']} on a CPU, the "
+                        f"fastest measured there; {DEFAULT_BATCH['gpu']} on a GPU); frames are grouped "
                         "by size, and the outputs do not depend on N")
     p.add_argument("--video", action="store_true",
                    help="write one MP4 per input sequence instead of per-frame images")

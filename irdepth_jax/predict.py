@@ -31,8 +31,17 @@ from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_png
 
-DEFAULT_BATCH = 4
-"""Frames per model call (`experiments/bench_predict.py` measures 1 vs 8)."""
+DEFAULT_BATCH = {"cpu": 1, "gpu": 8}
+"""Frames per model call by backend. On a 2-core CPU batches are slower, not faster (`paper` UNet
++ ViT-S at 512x640: 0.38 frames/s at batch 1, 0.31 at batch 8, `experiments/bench_predict.py`:
+the activations of 8 frames no longer fit the caches); a GPU needs batches to fill it."""
+
+
+def default_batch_size() -> int:
+    """`DEFAULT_BATCH` of the default JAX backend (8 for accelerators other than CPU)."""
+    import jax
+
+    return DEFAULT_BATCH.get(jax.default_backend(), DEFAULT_BATCH["gpu"])
 DEFAULT_FPS = 15.0
 """Frame rate of the depth videos (MS2's thermal camera records at 15 Hz)."""
 READ_AHEAD = 2
@@ -259,7 +268,7 @@ class _Writers:
 def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                   overrides: Sequence[str] = (), raw_bits: int | None = None,
                   pattern: str | None = None, strict: bool = False,
-                  batch_size: int = DEFAULT_BATCH, video: bool = False,
+                  batch_size: int | None = None, video: bool = False,
                   depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
                   progress: bool = False) -> list[str]:
     """Runs a trained model on raw frames and writes its outputs (see the module docstring).
@@ -273,7 +282,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         data.raw_bits); a count over it is an error.
       pattern, strict: which files of a folder are read, and whether a non-thermal one is an
         error (see `thermal_inputs`).
-      batch_size: frames per model call (frames of one size; outputs do not depend on it).
+      batch_size: frames per model call (frames of one size; outputs do not depend on it);
+        None: `default_batch_size()`.
       video: one MP4 per input sequence instead of per-frame images; `depth_png_frames`
         adds the 16-bit depth PNGs of its frames; `fps` is its frame rate.
       progress: a progress bar (frames/s) on stderr.
@@ -288,6 +298,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     from irdepth_jax.imaging.raw import BIT_DEPTHS
     from irdepth_jax.train.variables import load_model
 
+    batch_size = default_batch_size() if batch_size is None else batch_size
     if batch_size < 1:
         raise RunError(f"--batch-size {batch_size}: must be at least 1")
     cfg, _, model = load_model(path, overrides)
