@@ -169,20 +169,24 @@ def _read_ahead(frames: Iterator[Frame], size: int) -> Iterator[Frame]:
     done = object()
     stop = threading.Event()
 
+    def offer(item) -> bool:
+        """Puts `item` unless the consumer has stopped (then the thread ends, never blocks)."""
+        while not stop.is_set():
+            try:
+                q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
     def work():
         try:
             for frame in frames:
-                while not stop.is_set():
-                    try:
-                        q.put(frame, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
+                if not offer(frame):
                     return
-            q.put(done)
+            offer(done)
         except BaseException as err:  # noqa: BLE001 - re-raised on the consumer's thread
-            q.put(err)
+            offer(err)
 
     thread = threading.Thread(target=work, daemon=True, name="irdepth-read")
     thread.start()
