@@ -152,6 +152,16 @@ def test_synthetic_manifest_splits():
         synthetic_manifest(5, 6, seed=0)
 
 
+def test_synthetic_manifest_one_split():
+    """An evaluation set: every frame in the test split, the first `labeled` of them labelled."""
+    recs = synthetic_manifest(9, 4, seed=1, split="test")
+    assert [r["split"] for r in recs] == ["test"] * 9
+    assert sum(r["labeled"] for r in recs) == 4
+    assert all(r["seg_split"] == ("test" if r["labeled"] else None) for r in recs)
+    with pytest.raises(ValueError, match="split"):
+        synthetic_manifest(9, 4, seed=1, split="tset")
+
+
 def test_write_synthetic_dataset(tmp_path):
     out = tmp_path / "ds"
     write_synthetic_dataset(out, n=9, labeled=3, height=24, width=32, seed=5, progress=False)

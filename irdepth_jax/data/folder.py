@@ -358,8 +358,10 @@ def split_counts(n: int, proportions: tuple[int, ...]) -> tuple[int, ...]:
     return tuple(counts)
 
 
-def synthetic_manifest(n: int, labeled: int, seed: int) -> list[dict]:
-    """Frame records of a synthetic dataset: the paper's split proportions scaled to n / labeled.
+def synthetic_manifest(n: int, labeled: int, seed: int, split: str | None = None) -> list[dict]:
+    """Frame records of a synthetic dataset: the paper's split proportions scaled to n / labeled,
+    or (`split` 'train' | 'val' | 'test') every frame in that one split, the first `labeled` of
+    them labelled (an evaluation set rendered apart from the training data).
 
     Conditions cycle day, dusk, night over the frame index; the depth split is a seeded random
     assignment (1500:400:392); the labelled frames are drawn inside the depth splits so that
@@ -369,9 +371,12 @@ def synthetic_manifest(n: int, labeled: int, seed: int) -> list[dict]:
     """
     if n < 1 or not 0 <= labeled <= n:
         raise ValueError(f"need n >= 1 and 0 <= labeled <= n, got n={n}, labeled={labeled}")
+    if split is not None and split not in SPLITS:
+        raise ValueError(f"split {split!r}: must be one of {SPLITS}")
     rng = np.random.default_rng([seed, 0x5EC])
-    depth_n = split_counts(n, DEPTH_SPLIT)
-    seg_n = split_counts(labeled, SEG_SPLIT)
+    one = [int(s == split) for s in SPLITS]
+    depth_n = split_counts(n, DEPTH_SPLIT if split is None else one)
+    seg_n = split_counts(labeled, SEG_SPLIT if split is None else one)
     order = rng.permutation(n)
     records = [dict(id=f"{i:06d}", split=None, seg_split=None,
                     condition=CONDITIONS[i % len(CONDITIONS)], labeled=False) for i in range(n)]
@@ -390,13 +395,15 @@ def synthetic_manifest(n: int, labeled: int, seed: int) -> list[dict]:
 
 
 def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: int, seed: int = 0,
-                            progress: bool = True, overwrite: bool = False) -> pathlib.Path:
+                            progress: bool = True, overwrite: bool = False,
+                            split: str | None = None) -> pathlib.Path:
     """Renders n synthetic frames into a folder dataset (what `irdepth synth` runs).
 
     Args:
       out_dir: dataset directory; must be absent or empty unless overwrite=True, which removes
         an existing dataset's manifest and map folders first (other files are left alone).
       n, labeled: total and labelled frame counts (splits: see `synthetic_manifest`).
+      split: None (the paper's proportions) or one split holding every frame.
       height, width: frame size.
       seed: dataset seed; frame i is `render_scene(seed_i, condition_i, ...)` with seed_i
         derived from (seed, i).
@@ -415,7 +422,7 @@ def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: i
         (out / "manifest.json").unlink(missing_ok=True)
         for field in _FIELDS:
             shutil.rmtree(out / field, ignore_errors=True)
-    records = synthetic_manifest(n, labeled, seed)
+    records = synthetic_manifest(n, labeled, seed, split)
     for r in tqdm(records, desc=f"synth {out.name}", disable=not progress, unit="frame"):
         frame_seed = int(np.random.SeedSequence([seed, int(r["id"])]).generate_state(1)[0])
         s = render_scene(frame_seed, r["condition"], height, width)
