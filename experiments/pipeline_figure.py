@@ -15,7 +15,9 @@ import argparse
 import os
 
 import numpy as np
-import runner
+
+from experiments import runner
+from experiments.cache import DEFAULT_CACHE, EVAL_SPLIT
 
 
 def main(argv=None) -> None:
@@ -23,7 +25,7 @@ def main(argv=None) -> None:
     ap.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
     ap.add_argument("--seed", type=int, default=0, help="training seed of the run (default 0)")
     ap.add_argument("--data", default=None, help="dataset directory (default: synthetic)")
-    ap.add_argument("--cache", default=runner.DEFAULT_CACHE, help="the table scripts' cache")
+    ap.add_argument("--cache", default=DEFAULT_CACHE, help="the table scripts' cache")
     ap.add_argument("--quick", action="store_true", help="tiny preset, 2 steps per phase")
     ap.add_argument("--out", default=os.path.join(runner.RESULTS, "pipeline_examples.png"))
     args = ap.parse_args(argv)
@@ -38,8 +40,8 @@ def main(argv=None) -> None:
 
     ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,
                          data=args.data, cache=args.cache)
-    cfg, _, model = load_model(ctx.workdir(runner.Arm("HSV (ours)", "stage2"), args.seed))
-    dataset, indices = ctx.source.frames(runner.EVAL_SPLIT)
+    cfg, _, model = load_model(ctx.workdir("stage2", (), args.seed))
+    dataset, indices = ctx.eval_source.frames(EVAL_SPLIT)
     samples = {}
     for i in indices:  # the first test frame of each condition, at most four rows
         s = dataset[int(i)]

@@ -8,7 +8,7 @@ histogram equalisation, CLAHE or the camera-like chain (plateau HE + DDE, our st
 camera's built-in IRCBA), or our HSV pseudo-RGB. See `runner.py` for options and caching.
 """
 
-from runner import DEPTH_COLUMNS, Arm, Table, main
+from experiments.runner import DEPTH_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table1_preprocessing",

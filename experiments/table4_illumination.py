@@ -5,9 +5,15 @@
 IR = our pipeline (HSV pseudo-RGB of the raw frame); RGB = the same Stage II training on the
 aligned visible image (`stage2.preprocessing=rgb`). Metrics per lighting condition of the test
 split. Needs a dataset with aligned RGB images (the synthetic benchmark has them).
+
+Two controls trace what the depth network gets from each input (the README's reading of this
+table): 'blank' trains the same Stage II on a constant grey image, so its metrics are what the
+scene layout alone gives (no image information); the median-scaled rows are the IR and RGB runs
+with each prediction scaled by median(gt) / median(pred), which removes a per-image error of
+scale and leaves the error of shape.
 """
 
-from runner import DEPTH_COLUMNS, Arm, Table, main
+from experiments.runner import DEPTH_COLUMNS, Arm, Table, main
 
 CONDITIONS = ("day", "dusk", "night")
 
@@ -16,9 +22,16 @@ TABLE = Table(
     title="Table 4: depth under different illumination, IR vs RGB",
     about=("The same Stage II training (Depth Anything V2, SiLog + sky loss) on the HSV "
            "pseudo-RGB of the raw LWIR frame (IR, ours) and on the aligned visible image (RGB, "
-           "`stage2.preprocessing=rgb`); test metrics per condition."),
+           "`stage2.preprocessing=rgb`); test metrics per condition. Controls: *blank* = the "
+           "same training on a constant grey image (what the scene layout alone gives); "
+           "*median-scaled* = the IR / RGB predictions scaled per image by median(gt) / "
+           "median(pred) (error of shape without the error of scale)."),
     arms=tuple(Arm(name, "stage2", (f"stage2.preprocessing={pre}",), group=cond)
-               for name, pre in (("IR (HSV)", "hsv"), ("RGB", "rgb")) for cond in CONDITIONS),
+               for name, pre in (("IR (HSV)", "hsv"), ("RGB", "rgb"), ("blank (control)", "blank"))
+               for cond in CONDITIONS)
+    + tuple(Arm(f"{name}, median-scaled", "stage2", (f"stage2.preprocessing={pre}",), group=cond,
+                metrics="stage2_median")
+            for name, pre in (("IR (HSV)", "hsv"), ("RGB", "rgb")) for cond in CONDITIONS),
     columns=DEPTH_COLUMNS,
     paper={"IR (day)": dict(d1=0.974, d2=0.994, d3=0.996, abs_rel=0.041, sq_rel=0.422, rmse=3.018),
            "IR (dusk)": dict(d1=0.963, d2=0.992, d3=0.996, abs_rel=0.048, sq_rel=0.529, rmse=3.351),

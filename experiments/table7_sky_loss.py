@@ -6,7 +6,7 @@ Two Stage II trainings on the HSV pseudo-RGB that differ only in `stage2.sky_los
 loss pulls predictions in the Stage I sky mask to 0.99 x the largest training depth).
 """
 
-from runner import DEPTH_COLUMNS, Arm, Table, main
+from experiments.runner import DEPTH_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table7_sky_loss",

@@ -82,8 +82,7 @@ _PREDICT = {"stage1": _predict_stage1, "stage2": _predict_stage2}
 
 
 def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataParallel,
-                    seg_frames: tuple[Any, np.ndarray] | None = None
-                    ) -> dict[str, dict[str, float]]:
+                    seg_frames: tuple[Any, np.ndarray] | None = None, per_frame: bool = False):
     """Stage I metrics: {'all': {...}, <condition>: {...}}.
 
     Reconstruction over `indices` of `dataset` (a depth split): psnr, ssim (mean over images,
@@ -91,10 +90,14 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
     over `seg_frames` = (dataset, indices) of a segmentation split (the paper's 600/100/100
     split is independent of the depth split): miou over the labelled pixels, seg_count images;
     miou is NaN where there are none (also when `seg_frames` is None).
+
+    per_frame=True returns (metrics, frames) with frames = {'psnr', 'ssim', 'entropy': (N,)
+    float64, 'condition': (N,) str, 'seg_cm': (M, C, C) int64 confusion matrix of each
+    segmentation frame, 'seg_condition': (M,) str}: what a bootstrap over frames resamples.
     """
     run = _Predictor(dp, "stage1", cfg, unet_vars)
     num_classes = cfg.unet.num_classes
-    rows: dict[str, list] = {}
+    recon_rows, conditions = [], []
     for batch, n in _eval_batches(dataset, indices, dp):
         out = run({"raw14": batch["raw14"]})
         recon = np.asarray(out["recon"][:n], np.float32)
@@ -102,31 +105,51 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
         p = np.asarray(psnr(recon[..., None], target[..., None]))
         s = np.asarray(ssim(recon[..., None], target[..., None]))
         recon8 = np.clip(np.round(recon * 255.0), 0, 255).astype(np.uint8)
-        for i in range(n):
-            e = float(entropy(recon8[i]))
-            for group in ("all", str(batch["condition"][i])):
-                rows.setdefault(group, []).append((float(p[i]), float(s[i]), e))
-    cms: dict[str, np.ndarray] = {}
-    seg_counts: dict[str, int] = {}
+        recon_rows += [(p[i], s[i], float(entropy(recon8[i]))) for i in range(n)]
+        conditions += [str(c) for c in batch["condition"][:n]]
+    cms, seg_conditions = [], []
     seg_dataset, seg_indices = seg_frames if seg_frames is not None else (None, [])
     if len(seg_indices):
         for batch, n in _eval_batches(seg_dataset, seg_indices, dp):
             seg = run({"raw14": batch["raw14"]})["seg"]
-            for i in range(n):
-                cm = np.asarray(confusion_matrix(seg[i], batch["seg"][i], num_classes), np.int64)
-                for group in ("all", str(batch["condition"][i])):
-                    cms[group] = cms.get(group, 0) + cm
-                    seg_counts[group] = seg_counts.get(group, 0) + 1
+            cms += [np.asarray(confusion_matrix(seg[i], batch["seg"][i], num_classes), np.int64)
+                    for i in range(n)]
+            seg_conditions += [str(c) for c in batch["condition"][:n]]
+    values = np.asarray(recon_rows, np.float64).reshape(-1, 3)
+    frames = {"psnr": values[:, 0], "ssim": values[:, 1], "entropy": values[:, 2],
+              "condition": np.asarray(conditions, str),
+              "seg_cm": np.asarray(cms, np.int64).reshape(-1, num_classes, num_classes),
+              "seg_condition": np.asarray(seg_conditions, str)}
     result = {}
-    for group in ["all"] + sorted(g for g in set(rows) | set(cms) if g != "all"):
-        values = np.asarray(rows.get(group, [(np.nan, np.nan, np.nan)]), np.float64)
-        labelled = group in cms and cms[group].sum() > 0
-        result[group] = {"psnr": float(values[:, 0].mean()), "ssim": float(values[:, 1].mean()),
-                         "entropy": float(values[:, 2].mean()),
-                         "miou": float(mean_iou(cms[group])) if labelled else float("nan"),
-                         "count": len(rows.get(group, [])),
-                         "seg_count": seg_counts.get(group, 0)}
-    return result
+    for group in ["all"] + sorted(set(conditions + seg_conditions)):
+        rec = slice(None) if group == "all" else frames["condition"] == group
+        seg = slice(None) if group == "all" else frames["seg_condition"] == group
+        cm = frames["seg_cm"][seg].sum(axis=0)
+        count, seg_count = len(values[rec]), len(frames["seg_cm"][seg])
+        means = values[rec].mean(axis=0) if count else np.full(3, np.nan)
+        result[group] = {"psnr": float(means[0]), "ssim": float(means[1]),
+                         "entropy": float(means[2]),
+                         "miou": float(mean_iou(cm)) if seg_count and cm.sum() > 0 else float("nan"),
+                         "count": count, "seg_count": seg_count}
+    return (result, frames) if per_frame else result
+
+
+def accumulate_depth(cfg: Config, unet_vars: dict | None, da_params: Any, dataset, indices,
+                     dp: DataParallel, accumulators) -> None:
+    """Feeds the Stage II model's depth of every frame of `indices` to each
+    `metrics.DepthMetricAccumulator` of `accumulators` (one prediction, several alignments).
+
+    Ground truth: the dataset's `depth` (H, W) where `valid`; each accumulator applies its own
+    range, alignment and clamp."""
+    frozen = None if unet_vars is None else {"unet": unet_vars}
+    run = _Predictor(dp, "stage2", cfg, {"frozen": frozen, "depth": da_params})
+    for batch, n in _eval_batches(dataset, indices, dp):
+        inputs = device_batch(batch, "stage2", cfg)
+        inputs.pop("depth"), inputs.pop("valid")
+        depth = run(inputs)["depth"][:n]
+        conditions = [str(c) for c in batch["condition"][:n]]
+        for acc in accumulators:
+            acc.update(depth, batch["depth"][:n], batch["valid"][:n], conditions=conditions)
 
 
 def evaluate_stage2(cfg: Config, unet_vars: dict | None, da_params: Any, dataset, indices,
@@ -138,15 +161,7 @@ def evaluate_stage2(cfg: Config, unet_vars: dict | None, da_params: Any, dataset
     Ground truth: the dataset's `depth` (H, W) where `valid`, within [data.min_depth,
     data.max_depth]; predictions (H, W) are aligned per image (`align`: None, 'median' or
     'scale_shift') and then clamped to the same range."""
-    frozen = None if unet_vars is None else {"unet": unet_vars}
-
-    run = _Predictor(dp, "stage2", cfg, {"frozen": frozen, "depth": da_params})
     acc = DepthMetricAccumulator(align=align, min_depth=cfg.data.min_depth,
                                  max_depth=cfg.data.max_depth)
-    for batch, n in _eval_batches(dataset, indices, dp):
-        inputs = device_batch(batch, "stage2", cfg)
-        inputs.pop("depth"), inputs.pop("valid")
-        out = run(inputs)
-        acc.update(out["depth"][:n], batch["depth"][:n], batch["valid"][:n],
-                   conditions=[str(c) for c in batch["condition"][:n]])
+    accumulate_depth(cfg, unet_vars, da_params, dataset, indices, dp, [acc])
     return acc.result()

@@ -196,13 +196,16 @@ class DepthMetricAccumulator:
     all usable images seen (not a mean of batch means).
     """
 
-    def __init__(self, align: str | None = None, min_depth: float = 1e-3, max_depth: float = 80.0):
+    def __init__(self, align: str | None = None, min_depth: float = 1e-3, max_depth: float = 80.0,
+                 keep_per_image: bool = False):
         if align not in _ALIGNMENTS:
             raise ValueError(f"DepthMetricAccumulator: `align` must be one of {_ALIGNMENTS}")
         self.align, self.min_depth, self.max_depth = align, min_depth, max_depth
         self._sums: dict[str, np.ndarray] = {}
         self._counts: dict[str, int] = {}
         self._nonfinite: dict[str, np.ndarray] = {}  # group -> [pixels, images]
+        self._rows: list[np.ndarray] | None = [] if keep_per_image else None
+        self._conditions: list[str | None] = []
 
     def update(self, pred, gt, mask=None, conditions: str | Sequence[str] | None = None) -> None:
         """Adds a batch.
@@ -228,6 +231,9 @@ class DepthMetricAccumulator:
                 raise ValueError(
                     f"DepthMetricAccumulator.update: {len(names)} conditions for {batch} images"
                 )
+        if self._rows is not None:
+            self._rows.append(np.where(used[:, None], values, np.nan))
+            self._conditions += names
         for row, is_used, bad, name in zip(values, used, nonfinite, names):
             for group in ("all",) if name is None else ("all", str(name)):
                 if bad:
@@ -235,6 +241,17 @@ class DepthMetricAccumulator:
                 if is_used:
                     self._sums[group] = self._sums.get(group, 0.0) + row
                     self._counts[group] = self._counts.get(group, 0) + 1
+
+    def per_image(self) -> dict[str, np.ndarray]:
+        """Every image seen, in order (needs keep_per_image=True): each `DEPTH_METRICS` name ->
+        (N,) float64 (NaN for an image with < 10 valid pixels), 'condition' -> (N,) str."""
+        if self._rows is None:
+            raise ValueError("DepthMetricAccumulator.per_image: made without keep_per_image=True")
+        values = (np.concatenate(self._rows) if self._rows
+                  else np.zeros((0, len(DEPTH_METRICS))))
+        out = {k: values[:, j] for j, k in enumerate(DEPTH_METRICS)}
+        out["condition"] = np.asarray([str(c) for c in self._conditions])
+        return out
 
     def result(self) -> dict[str, dict[str, float]]:
         """{'all': metrics, condition: metrics, ...}; each has the `DEPTH_METRICS` means,

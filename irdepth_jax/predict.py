@@ -309,6 +309,9 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     if model["depth"] is not None and cfg.stage2.preprocessing == "rgb":
         raise RunError(f"{path}: this model takes visible RGB images "
                          "(stage2.preprocessing=rgb), not raw frames")
+    if model["depth"] is not None and cfg.stage2.preprocessing == "blank":
+        raise RunError(f"{path}: a control model (stage2.preprocessing=blank) that never sees "
+                       "the image; it predicts the same depth for every frame")
     trained_bits = resolved_raw_bits(cfg)
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:

@@ -151,6 +151,8 @@ def test_baseline_preprocessing_images(frames):
     rgb = np.zeros((2, 32, 48, 3), np.uint8)
     assert host_image({"rgb": rgb}, "rgb") is not None
     assert host_image({"raw14": frames["raw14"]}, "hsv") is None
+    blank = host_image({"raw14": frames["raw14"]}, "blank")
+    assert blank.shape == (2, 32, 48, 3) and blank.dtype == np.uint8 and (blank == 128).all()
     cfg = apply_overrides(CFG, ["stage2.preprocessing=clahe", "stage2.sky_loss=false"])
     loss_fn = stage2_loss_fn(cfg, 70.0)
     batch = {"raw14": frames["raw14"], "depth": frames["depth"], "valid": frames["valid"],

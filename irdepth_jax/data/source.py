@@ -17,7 +17,10 @@ from irdepth_jax.config import IGNORE_LABEL, Config, resolved_raw_bits
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.imaging.tonemap import TONEMAPS
 
-PREPROCESSING = ("hsv", "rgb") + tuple(TONEMAPS)
+PREPROCESSING = ("hsv", "rgb", "blank") + tuple(TONEMAPS)
+"""Stage II input images: 'blank' (a constant grey image) is a control: what the depth network
+learns from the scene layout alone, with no image information."""
+BLANK_GREY = 128
 
 
 class DataSource:
@@ -220,11 +223,14 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
 def host_image(batch: dict, preprocessing: str, bits: int = 14) -> np.ndarray | None:
     """The Stage II input image (B, H, W, 3) uint8 made on the host, or None for 'hsv'.
 
-    'rgb': the aligned visible image; a tonemap name ('he', 'clahe', 'camera', ...): the
-    tone-mapped raw frame (B, H, W) of `bits`-bit counts replicated to three channels.
+    'rgb': the aligned visible image; 'blank': constant grey (the layout-prior control); a tonemap
+    name ('he', 'clahe', 'camera', ...): the tone-mapped raw frame (B, H, W) of `bits`-bit counts
+    replicated to three channels.
     """
     if preprocessing == "hsv":
         return None
+    if preprocessing == "blank":
+        return np.full(np.shape(batch["raw14"]) + (3,), BLANK_GREY, np.uint8)
     if preprocessing == "rgb":
         return np.asarray(batch["rgb"], np.uint8)
     fn = TONEMAPS[preprocessing]

@@ -1,0 +1,335 @@
+"""The datasets and the cached training runs behind the tables.
+
+Layout of a cache directory (``--cache``, default ``workdir/experiments``):
+
+* ``data/synthetic-...``: the synthetic benchmark's training data (the preset's frame count and
+  size, dataset seed `DATA_SEED`) and, apart from it, its evaluation set ``data/eval-...``
+  (`--eval-frames` test frames, all labelled, dataset seed `EVAL_SEED`: evaluation is cheap, so
+  the test set is large and the metrics' frame noise small);
+* ``runs/<kind>-<hash>/``: one training run per (kind, full config, training data); the hash
+  covers every config field, so a run is reused by every table that needs it (the Stage I model
+  of a seed is shared by tables 1-7) and an interrupted run resumes from its last checkpoint;
+* ``runs/.../eval-<hash>.json`` + ``.npz``: the run's metrics on one evaluation set under one
+  protocol (aggregated, and per frame for the bootstrap in `experiments.claims`);
+* ``xla/``: JAX's persistent compilation cache.
+
+Run kinds: ``stage1_i1`` (Stage I-1 only: the single-task model of table 2), ``stage1`` (I-1
+then I-2; its I-1 phase is copied from the matching ``stage1_i1`` run, so the multi-task and
+single-task models of a seed start from the same I-1 weights) and ``stage2`` (Depth Anything V2
+on the frozen Stage I model of the same seed: every Stage II row of a table starts from the same
+Stage I checkpoint and the same Depth Anything initialisation, a paired design).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import shutil
+import time
+from collections.abc import Callable
+
+import numpy as np
+
+from irdepth_jax.compile_cache import enable_compilation_cache
+
+REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+DEFAULT_CACHE = os.path.join(REPO, "workdir", "experiments")
+EVAL_SPLIT = "test"
+DATA_SEED = 0  # the synthetic benchmark is one fixed dataset; --seeds vary the training only
+EVAL_SEED = 1  # its evaluation set: other scenes of the same distribution
+MS2_STRIDE = 10  # the MS2 protocol evaluates every 10th test frame
+
+
+@dataclasses.dataclass(frozen=True)
+class Protocol:
+    """How a run is evaluated: which frames, and the per-image alignment of the depth metrics.
+
+    Attributes:
+      name: 'synthetic' (our evaluation set, metric depth, no alignment), 'folder' (a user's
+        folder dataset's test split, no alignment) or 'ms2' (the MS2 literature protocol: every
+        10th frame of the test lists, day / night / rainy, predictions median-scaled per image,
+        valid 1e-3 < gt < 80 m, clamped).
+      stride: every `stride`-th frame of the split.
+      align: the alignment of the reported depth metrics (None or 'median'); the
+        median-scaled metrics are always stored too (`stage2_median`), as a diagnostic of scale.
+    """
+
+    name: str
+    stride: int = 1
+    align: str | None = None
+
+
+class Context:
+    """The config, data and cache of one invocation, and the cached runs (see module doc).
+
+    Args:
+      args: the parsed command line of `experiments.runner.parse_args`.
+      log: where progress lines go.
+    """
+
+    def __init__(self, args: argparse.Namespace, log: Callable[[str], None] = print):
+        import jax
+
+        from irdepth_jax.config import apply_overrides, get_config
+        from irdepth_jax.data.source import DataSource, resolve_raw_bits
+        from irdepth_jax.errors import RunError
+
+        self.args, self.log = args, log
+        try:
+            self.base = apply_overrides(get_config(args.preset), args.overrides)
+        except ValueError as err:
+            raise SystemExit(f"--set: {err}") from None
+        self.cache = os.path.abspath(args.cache)
+        os.makedirs(self.cache, exist_ok=True)
+        if not jax.config.jax_compilation_cache_dir:
+            enable_compilation_cache(os.path.join(self.cache, "xla"))
+        self.data_path, self.data_info = self._dataset()
+        try:
+            self.source = DataSource(self.data_path, args.format, raw_bits=self.base.data.raw_bits)
+            # every run (and its cache key) gets the resolved bit depth, 'auto' included
+            self.base = resolve_raw_bits(self.base, self.source)
+            self.data_info["format"] = self.source.format
+            self.eval_source, self.eval_info = self._eval_set()
+        except RunError as err:
+            raise SystemExit(str(err)) from None
+        self.protocol = (Protocol("ms2", MS2_STRIDE, "median") if self.source.format == "ms2"
+                         else Protocol("synthetic" if args.data is None else "folder"))
+        self.data_fingerprint = _fingerprint(self.data_path)
+        self.eval_key = hashlib.sha1(json.dumps(
+            {"data": _fingerprint(self.eval_info["path"]), "split": EVAL_SPLIT,
+             "protocol": dataclasses.asdict(self.protocol)}, sort_keys=True).encode()).hexdigest()[:12]
+
+    # ---------------------------------------------------------------- data
+    def _dataset(self) -> tuple[str, dict]:
+        if self.args.data is not None:
+            path = os.path.abspath(self.args.data)
+            return path, {"source": "user", "path": path}
+        d = self.base.data
+        return self._render(f"synthetic-n{d.num_frames}-l{d.num_labeled}", d.num_frames,
+                            d.num_labeled, DATA_SEED, split=None)
+
+    def _eval_set(self):
+        """(DataSource, info) of the evaluation frames: the synthetic benchmark's own test set,
+        or the user's dataset (its test split)."""
+        from irdepth_jax.data.source import DataSource
+
+        if self.args.data is not None:
+            return self.source, dict(self.data_info)
+        n = self.args.eval_frames
+        path, info = self._render(f"eval-n{n}", n, n, EVAL_SEED, split=EVAL_SPLIT)
+        source = DataSource(path, "folder", raw_bits=self.base.data.raw_bits)
+        return source, {**info, "format": source.format}
+
+    def _render(self, name: str, n: int, labeled: int, seed: int, split: str | None):
+        from irdepth_jax.data.folder import write_synthetic_dataset
+
+        d = self.base.data
+        path = os.path.join(self.cache, "data", f"{name}-{d.height}x{d.width}-seed{seed}")
+        info = {"source": "synthetic", "path": path, "num_frames": n, "num_labeled": labeled,
+                "height": d.height, "width": d.width, "seed": seed, "split": split,
+                "made_by": f"write_synthetic_dataset(path, {n}, {labeled}, {d.height}, {d.width}, "
+                           f"seed={seed}, split={split!r})"}
+        if not os.path.exists(os.path.join(path, "manifest.json")):  # manifest is written last
+            self.log(f"rendering {n} synthetic frames ({d.height}x{d.width}) into {path}")
+            write_synthetic_dataset(path, n, labeled, d.height, d.width, seed=seed,
+                                    progress=not self.args.no_progress, overwrite=True, split=split)
+        return path, info
+
+    # ---------------------------------------------------------------- configs
+    def config(self, kind: str, overrides: tuple[str, ...], seed: int):
+        """The run config of a row (`kind`, its `overrides`) for `seed` (Stage I runs normalise
+        the Stage II / depth sections to the base config's, so every table shares them)."""
+        from irdepth_jax.config import apply_overrides
+
+        try:
+            cfg = apply_overrides(dataclasses.replace(self.base, seed=seed), list(overrides))
+        except ValueError as err:
+            raise SystemExit(f"{' '.join(overrides)}: {err}") from None
+        if kind in ("stage1", "stage1_i1"):
+            cfg = self.stage1_config(cfg)
+        if kind == "stage1_i1":
+            cfg = i1_config(cfg, self.base)
+        return cfg
+
+    def stage1_config(self, cfg):
+        """`cfg` with the base config's Stage II / depth sections: the key of the Stage I run
+        that Stage II runs of any Stage II / depth setting share."""
+        return dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
+
+    def run_dir(self, kind: str, cfg) -> str:
+        """The cache directory of the run of `kind` with config `cfg`."""
+        from irdepth_jax.config import to_dict
+
+        blob = json.dumps({"kind": kind, "config": to_dict(cfg), "data": self.data_fingerprint},
+                          sort_keys=True)
+        return os.path.join(self.cache, "runs", f"{kind}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}")
+
+    # ---------------------------------------------------------------- runs
+    def result(self, kind: str, overrides: tuple[str, ...], seed: int) -> dict:
+        """The evaluation record of a row's run for `seed` (trained and evaluated if not
+        cached): {'stage1' | 'stage2' | 'stage2_median': {group: metrics}, 'protocol',
+        'train_wall_s', 'eval_wall_s', 'run'}."""
+        cfg = self.config(kind, overrides, seed)
+        workdir = self.run_dir(kind, cfg)
+        path = os.path.join(workdir, f"eval-{self.eval_key}.json")
+        if os.path.exists(path):
+            with open(path) as f:
+                return json.load(f)
+        train = {"stage1_i1": self._stage1_i1, "stage1": self._stage1, "stage2": self._stage2}
+        if kind not in train:
+            raise ValueError(f"unknown run kind {kind!r}")
+        train_wall_s = train[kind](cfg)
+        self.log(f"[{kind} seed {seed}] evaluating on {self.eval_info['path']} "
+                 f"({self.protocol.name} protocol)")
+        started = time.time()
+        metrics, frames = (self._eval_stage2 if kind == "stage2" else self._eval_stage1)(cfg, workdir)
+        record = {**metrics, "protocol": dataclasses.asdict(self.protocol), "split": EVAL_SPLIT,
+                  "eval_data": self.eval_info["path"], "run": os.path.basename(workdir),
+                  "train_wall_s": train_wall_s, "eval_wall_s": round(time.time() - started, 1)}
+        np.savez_compressed(path[:-len(".json")] + ".npz", **frames)
+        _write_json(path, record)  # last: its presence means the run is complete
+        return record
+
+    def workdir(self, kind: str, overrides: tuple[str, ...], seed: int) -> str:
+        """The directory of a row's run for `seed` (trained and evaluated first if not cached)."""
+        return os.path.join(self.cache, "runs", self.result(kind, overrides, seed)["run"])
+
+    def frames(self, record: dict) -> dict[str, np.ndarray]:
+        """The per-frame metrics saved beside an evaluation record of `result`."""
+        path = os.path.join(self.cache, "runs", record["run"], f"eval-{self.eval_key}.npz")
+        with np.load(path) as f:
+            return {k: f[k] for k in f.files}
+
+    def _options(self, workdir: str, **kw):
+        from irdepth_jax.train.phase import RunOptions
+
+        return RunOptions(workdir=workdir, resume=os.path.isdir(workdir), parallel="single",
+                          progress=not self.args.no_progress, eval=False, **kw)
+
+    def _trained(self, workdir: str) -> float | None:
+        """Training wall time of a finished run in `workdir`, None if it has not finished."""
+        path = os.path.join(workdir, "trained.json")
+        if not os.path.exists(path):
+            return None
+        with open(path) as f:
+            return json.load(f)["wall_s"]
+
+    def _train(self, fn, kind: str, cfg, opts) -> float:
+        """Runs `fn(cfg, source, opts)` (once: a finished run is only timed); returns the
+        training wall time."""
+        from irdepth_jax.errors import Interrupted, RunError
+
+        done = self._trained(opts.workdir)
+        if done is not None:
+            return done
+        self.log(f"[{kind} seed {cfg.seed}] training in {os.path.relpath(opts.workdir, self.cache)}")
+        started = time.time()
+        try:
+            fn(cfg, self.source, opts)
+        except Interrupted as err:
+            self.log(f"{err}\nre-run the same command to continue")
+            raise SystemExit(130) from None
+        except RunError as err:
+            raise SystemExit(str(err)) from None
+        wall_s = round(time.time() - started, 1)
+        _write_json(os.path.join(opts.workdir, "trained.json"), {"wall_s": wall_s})
+        return wall_s
+
+    def _stage1_i1(self, cfg) -> float:
+        from irdepth_jax.train.stages import train_stage1
+
+        workdir = self.run_dir("stage1_i1", cfg)
+        return self._train(train_stage1, "stage1_i1", cfg, self._options(workdir))
+
+    def _stage1(self, cfg) -> float:
+        from irdepth_jax.train.stages import train_stage1
+
+        workdir = self.run_dir("stage1", cfg)
+        i1_ckpt = os.path.join(workdir, "checkpoints", "stage1_i1")
+        if self._trained(workdir) is None and not os.path.isdir(i1_ckpt):
+            i1_cfg = i1_config(cfg, self.base)
+            self._stage1_i1(i1_cfg)
+            os.makedirs(os.path.dirname(i1_ckpt), exist_ok=True)
+            shutil.copytree(os.path.join(self.run_dir("stage1_i1", i1_cfg), "checkpoints",
+                                         "stage1_i1"), i1_ckpt)
+        opts = self._options(workdir)
+        opts.resume = True  # continues from the copied I-1 checkpoint
+        return self._train(train_stage1, "stage1", cfg, opts)
+
+    def _stage2(self, cfg) -> float:
+        from irdepth_jax.train.stages import train_stage2
+
+        s1_cfg = self.stage1_config(cfg)
+        self._stage1(s1_cfg)
+        workdir = self.run_dir("stage2", cfg)
+        return self._train(train_stage2, "stage2", cfg, self._options(
+            workdir, stage1_checkpoint=self.run_dir("stage1", s1_cfg)))
+
+    # ---------------------------------------------------------------- evaluation
+    def _eval_frames(self):
+        dataset, indices = self.eval_source.frames(EVAL_SPLIT, stride=self.protocol.stride)
+        if len(indices) == 0:
+            raise SystemExit(f"{self.eval_info['path']}: no {EVAL_SPLIT} frames")
+        return dataset, indices
+
+    def _eval_stage1(self, cfg, workdir: str) -> tuple[dict, dict]:
+        """Stage I metrics: reconstruction on the depth test frames, mIoU (tables 3 and 6) on
+        the segmentation test frames (the paper's independent 600/100/100 split)."""
+        from irdepth_jax.evaluators import evaluate_stage1
+        from irdepth_jax.train.parallel import DataParallel
+        from irdepth_jax.train.variables import load_stage1
+
+        unet, _ = load_stage1(workdir, cfg)
+        dataset, indices = self._eval_frames()
+        metrics, frames = evaluate_stage1(cfg, unet, dataset, indices, DataParallel("single"),
+                                          seg_frames=self.eval_source.seg_frames(EVAL_SPLIT),
+                                          per_frame=True)
+        return {"stage1": metrics}, frames
+
+    def _eval_stage2(self, cfg, workdir: str) -> tuple[dict, dict]:
+        """Depth metrics under the protocol's alignment ('stage2') and median-scaled per image
+        ('stage2_median'), from one prediction per frame."""
+        from irdepth_jax.evaluators import accumulate_depth
+        from irdepth_jax.metrics import DepthMetricAccumulator
+        from irdepth_jax.train.parallel import DataParallel
+        from irdepth_jax.train.variables import load_model
+
+        _, _, model = load_model(workdir, [])
+        dataset, indices = self._eval_frames()
+        accs = {key: DepthMetricAccumulator(align, cfg.data.min_depth, cfg.data.max_depth,
+                                            keep_per_image=True)
+                for key, align in (("stage2", self.protocol.align), ("stage2_median", "median"))}
+        accumulate_depth(cfg, model["unet"], model["depth"], dataset, indices,
+                         DataParallel("single"), list(accs.values()))
+        frames = {f"{key}/{k}": v for key, acc in accs.items() for k, v in acc.per_image().items()}
+        return {key: acc.result() for key, acc in accs.items()}, frames
+
+
+def _fingerprint(path: str) -> str:
+    """Hash of a dataset's manifest (MS2: its path)."""
+    manifest = os.path.join(path, "manifest.json")
+    if os.path.exists(manifest):
+        with open(manifest, "rb") as f:
+            return hashlib.sha1(f.read()).hexdigest()[:12]
+    return hashlib.sha1(path.encode()).hexdigest()[:12]
+
+
+def _write_json(path: str, obj) -> None:
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=2)
+    os.replace(tmp, path)
+
+
+def i1_config(cfg, base):
+    """The Stage I-1-only config of `cfg`: the I-2 phase has 0 steps and every I-2-only field
+    is the base config's, so runs that differ only in I-2 settings share one I-1 run."""
+    s1, b1 = cfg.stage1, base.stage1
+    return dataclasses.replace(cfg, stage1=dataclasses.replace(
+        s1, steps_i2=0, epochs_i2=b1.epochs_i2, multitask=b1.multitask, w_rec=b1.w_rec,
+        w_seg=b1.w_seg, stage12_learning_rate=b1.stage12_learning_rate,
+        seg_lr_multiplier=b1.seg_lr_multiplier, seg_labels=b1.seg_labels,
+        synthetic_labeled=b1.synthetic_labeled))
