@@ -47,7 +47,7 @@ def _setup_jax(args) -> None:
 
 def load_config(preset: str, config_file: str | None, overrides: list[str]):
     """Preset, then a .py (defining `get_config()` or `config`) or .json config, then overrides."""
-    from irdepth_jax.config import Config, apply_overrides, from_dict, get_config, to_dict
+    from irdepth_jax.config import Config, apply_overrides, from_dict, get_config, to_dict, upgrade_dict
 
     cfg = get_config(preset)
     if config_file:
@@ -59,6 +59,10 @@ def load_config(preset: str, config_file: str | None, overrides: list[str]):
                     doc = json.load(f)
             except json.JSONDecodeError as err:
                 raise CliError(f"--config {config_file}: not valid JSON ({err})") from None
+            if not isinstance(doc, dict):
+                raise CliError(f"--config {config_file}: expected a JSON object (nested like "
+                               "config.json)")
+            doc = upgrade_dict(doc, where=f"--config {config_file}")
             cfg = from_dict(_merge(to_dict(cfg), doc, config_file))
         elif config_file.endswith(".py"):
             made = _run_config_file(config_file)
@@ -79,6 +83,8 @@ def _run_config_file(path: str):
     """
     import traceback
 
+    from irdepth_jax.config import renamed_hint
+
     scope: dict = {}
     try:
         with open(path) as f:
@@ -91,7 +97,7 @@ def _run_config_file(path: str):
         where = f"line {lines[-1]}: " if lines else ""
         text = str(err).strip().splitlines()
         raise CliError(f"--config {path}: {where}{type(err).__name__}"
-                       + (f": {text[0]}" if text else "")) from None
+                       + (f": {text[0]}" if text else "") + renamed_hint(str(err))) from None
 
 
 def _merge(base: dict, doc: dict, where: str, prefix: str = "") -> dict:
@@ -138,17 +144,21 @@ def _run_options(args, workdir: str, resume: bool):
 
 
 @contextlib.contextmanager
-def _one_line_dataset_warnings():
-    """Within the block, each distinct `DatasetWarning` (e.g. MS2 sequences not on disk) is
-    printed once as one line ``irdepth: warning: ...`` on stderr; other warnings as usual."""
+def _one_line_warnings():
+    """Within the block, each distinct `DatasetWarning` (e.g. MS2 sequences not on disk) and
+    `DeprecatedKeyWarning` (a config key under its old name) is printed once as one line
+    ``irdepth: warning: ...`` on stderr; other warnings as usual."""
+    from irdepth_jax.config import DeprecatedKeyWarning
     from irdepth_jax.data.folder import DatasetWarning
 
+    ours = (DatasetWarning, DeprecatedKeyWarning)
     with warnings.catch_warnings():
-        warnings.simplefilter("default", DatasetWarning)
+        for category in ours:
+            warnings.simplefilter("default", category)
         show = warnings.showwarning
 
         def one_line(message, category, *rest, **kwargs):
-            if not issubclass(category, DatasetWarning):
+            if not issubclass(category, ours):
                 return show(message, category, *rest, **kwargs)
             print(f"irdepth: warning: {message}", file=sys.stderr, flush=True)
 
@@ -564,7 +574,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         _setup_jax(args)
-        with _one_line_dataset_warnings():
+        with _one_line_warnings():
             return args.func(args)
     except Interrupted as stop:
         print(f"irdepth: {stop}", file=sys.stderr)
