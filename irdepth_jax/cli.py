@@ -34,12 +34,11 @@ class CliError(Exception):
 # --------------------------------------------------------------------------- helpers
 def _setup_jax(args) -> None:
     """Persistent XLA compilation cache (repeat runs skip compiling; JAX_COMPILATION_CACHE_DIR
-    or ~/.cache/irdepth_jax/xla) and multi-host init."""
-    import jax
+    or ~/.cache/irdepth_jax/xla; off with --no-compile-cache) and multi-host init."""
+    from irdepth_jax.compile_cache import default_cache_dir, enable_compilation_cache
 
-    if not getattr(args, "no_compile_cache", False) and not jax.config.jax_compilation_cache_dir:
-        jax.config.update("jax_compilation_cache_dir", os.path.join(
-            os.path.expanduser("~"), ".cache", "irdepth_jax", "xla"))
+    enable_compilation_cache(None if getattr(args, "no_compile_cache", False)
+                             else default_cache_dir())
     if getattr(args, "coordinator", None):
         from irdepth_jax.train.parallel import initialize_distributed
         initialize_distributed(args.coordinator, args.num_processes, args.process_id)
