@@ -167,7 +167,7 @@ def _one_line_warnings():
 
 # --------------------------------------------------------------------------- commands
 def cmd_synth(args) -> int:
-    from irdepth_jax.data.folder import write_synthetic_dataset
+    from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
     height, width = args.size
     path = write_synthetic_dataset(args.out, args.n, args.labeled, height, width, seed=args.seed,

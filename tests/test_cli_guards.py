@@ -15,7 +15,7 @@ import orbax.checkpoint as ocp
 import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
-from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.train import checkpoint, phase, stages
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
