@@ -17,7 +17,7 @@ LAYERS = [
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
     ("runs and deployment", ["evaluate", "predict", "export", "workflow"]),
-    ("command line", ["cli", "__main__"]),
+    ("command line", ["cli", "cli_commands", "__main__"]),
 ]
 
 
