@@ -13,7 +13,7 @@ LAYERS = [
     ("losses and metrics", ["losses", "metrics"]),
     ("data", ["data"]),
     ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.checkpoint",
-                            "train.workdir_lock", "train.runlog", "train.variables"]),
+                            "train.workdir_lock", "train.runlog", "train.variables", "train.legacy_names"]),
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
     ("runs and deployment", ["evaluate", "predict", "export", "workflow"]),

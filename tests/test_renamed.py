@@ -165,3 +165,20 @@ def test_resuming_a_run_whose_config_json_has_the_old_key(tmp_path):
     stored["stage1"]["stage12_learning_rate"] = stored["stage1"].pop("i2_learning_rate")
     (tmp_path / "config.json").write_text(json.dumps(stored))
     prepare_workdir(str(tmp_path), cfg, resume=True)  # the same run: no "config differs"
+
+
+def test_legacy_names_rename_only_what_was_renamed():
+    from irdepth_jax.train.legacy_names import from_legacy, has_legacy_keys, to_legacy
+
+    state = optax.MaskedState(inner_state={"dec_grad_up12": 1, "head_saturation": 2,
+                                           "frozen": 3, "dec_grad": 4})
+    tree = {"opt": {"inner_states": {"frozen": 5}}, "state": state}
+    new = from_legacy(tree)
+    assert new == {"opt": {"inner_states": {"no_update": 5}},  # a group only under inner_states
+                   "state": optax.MaskedState(inner_state={"dec_gradient_up12": 1,
+                                                           "head_gradient": 2, "frozen": 3,
+                                                           "dec_grad": 4})}
+    assert type(new["state"]) is optax.MaskedState
+    assert to_legacy(new) == tree
+    assert has_legacy_keys(tree) and not has_legacy_keys(new)
+    assert not has_legacy_keys({"x": {"frozen": 1}, "y": [{"dec_seg_up0": 2}]})

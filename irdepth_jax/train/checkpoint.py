@@ -16,8 +16,8 @@ step: restore picks the last finalised one (and the manager removes the leftover
 A save that cannot fit on the disk is refused before it starts (OSError ENOSPC), and a finished
 run whose weights hold NaN / inf is refused when it is loaded (`restore_items`).
 
-Renamed keys (`LEGACY_KEYS`: the gradient branch's modules, an optimizer group) are mapped on
-restore, so checkpoints written under the old names still load and resume.
+Renamed keys (`train.legacy_names`: the gradient branch's modules, an optimizer group) are
+mapped on restore, so checkpoints written under the old names still load and resume.
 """
 
 from __future__ import annotations
@@ -25,7 +25,6 @@ from __future__ import annotations
 import errno
 import logging
 import os
-import re
 import shutil
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -35,16 +34,8 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from irdepth_jax.models.unet import LEGACY_MODULE_NAMES
-from irdepth_jax.train.state import LEGACY_GROUP_NAMES, STAGES, TrainState, path_to_str
-
-LEGACY_KEYS: tuple[tuple[str, str, str | None], ...] = (
-    *((old, new, None) for old, new in LEGACY_MODULE_NAMES),
-    *((old, new, "inner_states") for old, new in LEGACY_GROUP_NAMES),
-)
-"""(old, new, parent) key names of checkpoints written before a rename: a key of any item's tree
-(``{i}``: digits), where `parent` (when not None) is the key holding it. `restore_items` restores
-such a checkpoint under its old names and returns the trees under the new ones."""
+from irdepth_jax.train.legacy_names import from_legacy, has_legacy_keys, to_legacy
+from irdepth_jax.train.state import STAGES, TrainState, path_to_str
 
 
 class CheckpointError(ValueError):
@@ -201,18 +192,18 @@ class Checkpointer:
                                   f"{meta.get('stage')!r} checkpoint, expected "
                                   f"{' or '.join(map(repr, stages))}")
         stored = self.manager.item_metadata(step)
-        legacy = set()  # items stored under old key names (`LEGACY_KEYS`)
+        legacy = set()  # items stored under old key names (`train.legacy_names`)
         for name, template in templates.items():
             if stored.get(name) is None:
                 raise CheckpointError(f"checkpoint {self.directory} step {step} has no {name!r}")
-            if _has_legacy_keys(stored[name].tree):
+            if has_legacy_keys(stored[name].tree):
                 legacy.add(name)
-            _check_shapes(stored[name].tree, _to_legacy(template) if name in legacy else template,
+            _check_shapes(stored[name].tree, to_legacy(template) if name in legacy else template,
                           f"{self.directory} step {step} {name}")
         restored = self.manager.restore(step, args=ocp.args.Composite(**{
-            name: ocp.args.StandardRestore(_abstract(_to_legacy(t) if name in legacy else t))
+            name: ocp.args.StandardRestore(_abstract(to_legacy(t) if name in legacy else t))
             for name, t in templates.items()}))
-        items = {name: _from_legacy(restored[name]) if name in legacy else restored[name]
+        items = {name: from_legacy(restored[name]) if name in legacy else restored[name]
                  for name in templates}
         if check_finite:
             _check_finite(items, f"{self.directory} step {step}")
@@ -312,61 +303,6 @@ def restore_model(directory: str, stage: str | tuple[str, ...], template_model: 
     """``{'params', 'batch_stats'}`` and meta of a finished run of `stage` (see `restore_items`)."""
     items, meta = restore_items(directory, stage, {"model": template_model}, step)
     return dict(items["model"]), meta
-
-
-def _key_pattern(name: str) -> re.Pattern:
-    return re.compile(re.escape(name).replace(re.escape("{i}"), r"(\d+)"))
-
-
-_LEGACY = [(_key_pattern(old), old, _key_pattern(new), new, parent)
-           for old, new, parent in LEGACY_KEYS]
-
-
-def _renamed(key: Any, parent: Any, to_new: bool) -> Any:
-    """`key` under its new name (`to_new`) or its old one, per `LEGACY_KEYS`."""
-    if not isinstance(key, str):
-        return key
-    for old_re, old, new_re, new, where in _LEGACY:
-        match = (old_re if to_new else new_re).fullmatch(key)
-        if match and where in (None, parent):
-            return (new if to_new else old).replace("{i}", match.group(1) if match.groups() else "")
-    return key
-
-
-def _rename_keys(tree: Any, to_new: bool) -> Any:
-    """`tree` (dicts, named tuples such as optax states, tuples, lists; other values are
-    leaves) with its dict keys renamed by `LEGACY_KEYS`, old -> new (`to_new`) or back."""
-    def walk(node, parent):
-        if isinstance(node, dict):
-            return {_renamed(k, parent, to_new): walk(v, k) for k, v in node.items()}
-        if isinstance(node, tuple) and hasattr(node, "_fields"):
-            return type(node)(*(walk(getattr(node, f), f) for f in node._fields))
-        if isinstance(node, (tuple, list)):
-            return type(node)(walk(v, parent) for v in node)
-        return node
-
-    return walk(tree, None)
-
-
-def _to_legacy(tree: Any) -> Any:
-    return _rename_keys(tree, to_new=False)
-
-
-def _from_legacy(tree: Any) -> Any:
-    return _rename_keys(tree, to_new=True)
-
-
-def _has_legacy_keys(tree: Any) -> bool:
-    """Whether a stored item's tree (its orbax metadata: nested dicts and lists) has a key of
-    `LEGACY_KEYS` under its old name."""
-    def walk(node, parent):
-        if isinstance(node, dict):
-            return any(_renamed(k, parent, True) != k or walk(v, k) for k, v in node.items())
-        if isinstance(node, (tuple, list)):
-            return any(walk(v, parent) for v in node)
-        return False
-
-    return walk(tree, None)
 
 
 def _abstract(tree: Any) -> Any:
