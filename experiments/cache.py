@@ -330,6 +330,6 @@ def i1_config(cfg, base):
     s1, b1 = cfg.stage1, base.stage1
     return dataclasses.replace(cfg, stage1=dataclasses.replace(
         s1, steps_i2=0, epochs_i2=b1.epochs_i2, multitask=b1.multitask, w_rec=b1.w_rec,
-        w_seg=b1.w_seg, stage12_learning_rate=b1.stage12_learning_rate,
+        w_seg=b1.w_seg, i2_learning_rate=b1.i2_learning_rate,
         seg_lr_multiplier=b1.seg_lr_multiplier, seg_labels=b1.seg_labels,
         synthetic_labeled=b1.synthetic_labeled))

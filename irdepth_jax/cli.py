@@ -5,18 +5,32 @@ checkpoint of another stage or shape, an 8-bit file given to predict, a workdir 
 holds a run) is printed as one line ``irdepth: error: ...`` with exit code 2, before anything is
 written. Ctrl-C during training saves a checkpoint and exits with code 130. Set IRDEPTH_DEBUG=1 to
 get the traceback instead of the one-line message.
+
+This module is the parser (`build_parser`) and the entry point (`main`); the commands are
+implemented in `irdepth_jax.cli_commands`.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import json
 import os
 import re
 import sys
-import time
 import warnings
+
+from irdepth_jax.cli_commands import (
+    CliError,
+    cmd_eval,
+    cmd_export,
+    cmd_predict,
+    cmd_quickstart,
+    cmd_synth,
+    cmd_train,
+    load_config,
+)
+
+__all__ = ["EXIT_INTERRUPTED", "EXIT_USAGE", "CliError", "build_parser", "load_config", "main"]
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -27,98 +41,17 @@ EPILOG_OVERRIDES = (
     "(see irdepth_jax/config.py for every key).")
 
 
-class CliError(Exception):
-    """A one-line user error."""
-
-
 # --------------------------------------------------------------------------- helpers
 def _setup_jax(args) -> None:
     """Persistent XLA compilation cache (repeat runs skip compiling; JAX_COMPILATION_CACHE_DIR
-    or ~/.cache/irdepth_jax/xla) and multi-host init."""
-    import jax
+    or ~/.cache/irdepth_jax/xla; off with --no-compile-cache) and multi-host init."""
+    from irdepth_jax.compile_cache import default_cache_dir, enable_compilation_cache
 
-    if not getattr(args, "no_compile_cache", False) and not jax.config.jax_compilation_cache_dir:
-        jax.config.update("jax_compilation_cache_dir", os.path.join(
-            os.path.expanduser("~"), ".cache", "irdepth_jax", "xla"))
+    enable_compilation_cache(None if getattr(args, "no_compile_cache", False)
+                             else default_cache_dir())
     if getattr(args, "coordinator", None):
         from irdepth_jax.train.parallel import initialize_distributed
         initialize_distributed(args.coordinator, args.num_processes, args.process_id)
-
-
-def load_config(preset: str, config_file: str | None, overrides: list[str]):
-    """Preset, then a .py (defining `get_config()` or `config`) or .json config, then overrides."""
-    from irdepth_jax.config import Config, apply_overrides, from_dict, get_config, to_dict
-
-    cfg = get_config(preset)
-    if config_file:
-        if not os.path.isfile(config_file):
-            raise CliError(f"--config {config_file}: no such file")
-        if config_file.endswith(".json"):
-            try:
-                with open(config_file) as f:
-                    doc = json.load(f)
-            except json.JSONDecodeError as err:
-                raise CliError(f"--config {config_file}: not valid JSON ({err})") from None
-            cfg = from_dict(_merge(to_dict(cfg), doc, config_file))
-        elif config_file.endswith(".py"):
-            made = _run_config_file(config_file)
-            if not isinstance(made, Config):
-                raise CliError(f"--config {config_file}: defines neither get_config() nor "
-                               "config returning an irdepth_jax.config.Config")
-            cfg = made
-        else:
-            raise CliError(f"--config {config_file}: expected a .py or .json file")
-    return apply_overrides(cfg, overrides)
-
-
-def _run_config_file(path: str):
-    """What a .py config file makes: its `get_config()`, else its `config` (else None).
-
-    Raises CliError naming the file and line for a syntax error, or for an exception raised
-    while the file runs or get_config() is called.
-    """
-    import traceback
-
-    scope: dict = {}
-    try:
-        with open(path) as f:
-            exec(compile(f.read(), path, "exec"), scope)
-        return scope["get_config"]() if "get_config" in scope else scope.get("config")
-    except SyntaxError as err:
-        raise CliError(f"--config {path}: line {err.lineno}: syntax error ({err.msg})") from None
-    except Exception as err:  # noqa: BLE001 - any error of the user's file, as one line
-        lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == path]
-        where = f"line {lines[-1]}: " if lines else ""
-        text = str(err).strip().splitlines()
-        raise CliError(f"--config {path}: {where}{type(err).__name__}"
-                       + (f": {text[0]}" if text else "")) from None
-
-
-def _merge(base: dict, doc: dict, where: str, prefix: str = "") -> dict:
-    out = dict(base)
-    for key, value in doc.items():
-        if key not in base:
-            raise CliError(f"--config {where}: unknown config key {prefix + key!r}")
-        if isinstance(base[key], dict):
-            if not isinstance(value, dict):
-                raise CliError(f"--config {where}: {prefix + key!r} is a section")
-            out[key] = _merge(base[key], value, where, prefix + key + ".")
-        else:
-            out[key] = value
-    return out
-
-
-def _overrides(items: list[str]) -> list[str]:
-    for item in items:
-        if "=" not in item:
-            raise CliError(f"unexpected argument {item!r} (overrides are key=value)")
-    return items
-
-
-def _check_out_dir(path: str | None) -> None:
-    """CliError when --out names an existing file (the outputs go into a directory)."""
-    if path and os.path.exists(path) and not os.path.isdir(path):
-        raise CliError(f"--out {path}: exists and is not a directory")
 
 
 def _parse_size(text: str) -> tuple[int, int]:
@@ -128,199 +61,27 @@ def _parse_size(text: str) -> tuple[int, int]:
     return int(match.group(1)), int(match.group(2))
 
 
-def _run_options(args, workdir: str, resume: bool):
-    from irdepth_jax.train.phase import RunOptions
-
-    return RunOptions(workdir=workdir, resume=resume, parallel=args.parallel,
-                      devices=args.devices, steps=args.steps, stop_at=args.stop_at,
-                      progress=not args.no_progress,
-                      stage1_checkpoint=getattr(args, "stage1_checkpoint", None))
-
-
 @contextlib.contextmanager
-def _one_line_dataset_warnings():
-    """Within the block, each distinct `DatasetWarning` (e.g. MS2 sequences not on disk) is
-    printed once as one line ``irdepth: warning: ...`` on stderr; other warnings as usual."""
+def _one_line_warnings():
+    """Within the block, each distinct `DatasetWarning` (e.g. MS2 sequences not on disk) and
+    `DeprecatedKeyWarning` (a config key under its old name) is printed once as one line
+    ``irdepth: warning: ...`` on stderr; other warnings as usual."""
+    from irdepth_jax.config import DeprecatedKeyWarning
     from irdepth_jax.data.folder import DatasetWarning
 
+    ours = (DatasetWarning, DeprecatedKeyWarning)
     with warnings.catch_warnings():
-        warnings.simplefilter("default", DatasetWarning)
+        for category in ours:
+            warnings.simplefilter("default", category)
         show = warnings.showwarning
 
         def one_line(message, category, *rest, **kwargs):
-            if not issubclass(category, DatasetWarning):
+            if not issubclass(category, ours):
                 return show(message, category, *rest, **kwargs)
             print(f"irdepth: warning: {message}", file=sys.stderr, flush=True)
 
         warnings.showwarning = one_line
         yield
-
-
-# --------------------------------------------------------------------------- commands
-def cmd_synth(args) -> int:
-    from irdepth_jax.data.folder import write_synthetic_dataset
-
-    height, width = args.size
-    path = write_synthetic_dataset(args.out, args.n, args.labeled, height, width, seed=args.seed,
-                                   progress=not args.no_progress, overwrite=args.overwrite)
-    print(f"wrote {args.n} frames ({args.labeled} labelled, {height}x{width}) to {path}")
-    return 0
-
-
-@contextlib.contextmanager
-def _ctrl_c_while_training():
-    """Ctrl-C within the block, outside a training loop (which has its own handler), e.g. while
-    a stopped phase's last checkpoint is finalised: KeyboardInterrupt as usual, except while a
-    checkpoint is being written (ignored with a note, so that it completes: a stop is then under
-    way, or Ctrl-C can be pressed again) and once the run is aborting.
-
-    Yields a dict whose 'aborting' is set when this handler raises, or by the caller that caught
-    a KeyboardInterrupt: from then on Ctrl-C is ignored while the aborted run is torn down
-    (its clean-up, its loader threads), so that it still ends with one line.
-    """
-    import signal
-
-    from irdepth_jax.train.phase import writing_checkpoint
-
-    state = {"aborting": False, "noted": False}
-
-    def handler(signum, frame):
-        if state["aborting"]:
-            return
-        if writing_checkpoint(frame):
-            if not state["noted"]:
-                print("irdepth: Ctrl-C while a checkpoint is written: ignored so that it "
-                      "completes (press again to stop)", file=sys.stderr, flush=True)
-            state["noted"] = True
-            return
-        state["aborting"] = True
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGINT, handler)
-    except ValueError:  # not the main thread: Ctrl-C is not ours to handle
-        previous = None
-    try:
-        yield state
-    finally:
-        if previous is not None:
-            signal.signal(signal.SIGINT, previous)
-
-
-def cmd_train(args) -> int:
-    """Trains a stage in --workdir, holding the workdir's lock (`train.workdir_lock`): a run
-    that fails before recording anything leaves no trace; Ctrl-C names the last checkpoint."""
-    import jax
-
-    from irdepth_jax.data.source import DataSource
-    from irdepth_jax.errors import Interrupted
-    from irdepth_jax.train.stages import train_stage1, train_stage2
-    from irdepth_jax.train.workdir_lock import claim_workdir, holds_run, last_checkpoint
-
-    cfg = load_config(args.preset, args.config, _overrides(args.overrides))
-    if args.stage == "stage1" and args.stage1_checkpoint:
-        raise CliError("--stage1-checkpoint is for train stage2")
-    source = DataSource(args.data, args.format, strict=args.strict, raw_bits=cfg.data.raw_bits)
-    start = time.perf_counter()
-    # one process takes the lock (a multi-host run's processes may share the directory)
-    claim = claim_workdir(args.workdir) if jax.process_index() == 0 else contextlib.nullcontext()
-    interrupted = False
-    with _ctrl_c_while_training() as ctrl_c:
-        try:
-            with claim:
-                held = holds_run(args.workdir)
-                if args.resume and not held:
-                    raise CliError(f"--resume: workdir {args.workdir} holds no run to continue; "
-                                   "pass --resume-or-start to start one there")
-                opts = _run_options(args, args.workdir,
-                                    held if args.resume_or_start else args.resume)
-                if args.stage == "stage1":
-                    result = train_stage1(cfg, source, opts)
-                else:
-                    train_stage2(cfg, source, opts)
-        except KeyboardInterrupt:  # the run's frames (loader threads) end with this block
-            ctrl_c["aborting"] = interrupted = True
-    if interrupted:
-        last = last_checkpoint(args.workdir)
-        raise Interrupted(f"interrupted; the last checkpoint is {last[0]} step {last[1]}, "
-                          "continue with --resume" if last else
-                          "interrupted before the first checkpoint; nothing to continue")
-    if args.stage == "stage1":
-        print(f"stage1 done ({', '.join(f'{k}: {v} steps' for k, v in result['steps'].items())}"
-              f", {time.perf_counter() - start:.0f} s); checkpoints in {args.workdir}/checkpoints")
-    else:
-        print(f"stage2 done ({time.perf_counter() - start:.0f} s); checkpoints in "
-              f"{args.workdir}/checkpoints/stage2")
-    return 0
-
-
-def cmd_eval(args) -> int:
-    from irdepth_jax.evaluate import evaluate_run, nonfinite_warning
-
-    _check_out_dir(args.out)
-    path = args.checkpoint or args.workdir
-    result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
-                          overrides=_overrides(args.overrides), stride=args.stride,
-                          align=None if args.align == "none" else args.align,
-                          strict=args.strict)
-    print(result["markdown"])
-    warning = nonfinite_warning(result)
-    if warning:
-        print(f"irdepth: WARNING: {warning}", file=sys.stderr)
-    out = args.out or path
-    print(f"tables written to {out}/eval_{args.split}.md and .json")
-    return 0
-
-
-def cmd_predict(args) -> int:
-    from irdepth_jax.predict import predict_files
-
-    _check_out_dir(args.out)
-    if args.depth_png and not args.video:
-        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
-                       "every frame's PNGs are written anyway)")
-    written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
-                            raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
-                            batch_size=args.batch_size, video=args.video,
-                            depth_png_frames=args.depth_png, fps=args.fps,
-                            progress=not args.no_progress)
-    videos = sum(f.endswith(".mp4") for f in written)
-    what = f"{videos} videos and {len(written) - videos} files" if args.video else \
-        f"{len(written)} files"
-    print(f"wrote {what} to {args.out}")
-    return 0
-
-
-def cmd_export(args) -> int:
-    """Writes the Stage II model as one ONNX / StableHLO file (+ FILE.json), checked against
-    the JAX pipeline (`irdepth_jax.export`)."""
-    from irdepth_jax.export import export_model, metadata_path
-
-    meta = export_model(args.checkpoint, args.format, args.height, args.width, args.batch,
-                        args.out, sample=args.sample)
-    check = meta["check"]
-    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on {check['frames']} "
-          f"{'synthetic' if args.sample is None else 'sample'} frames (tolerance "
-          f"{check['tolerance']:.3g} m)")
-    print(f"wrote {args.out} and {metadata_path(args.out)}")
-    return 0
-
-
-def cmd_quickstart(args) -> int:
-    """synth -> stage1 (I-1, I-2) -> stage2 -> eval (`workflow.train_and_evaluate`), with the
-    untrained -> trained change."""
-    from irdepth_jax.workflow import improvement_lines, train_and_evaluate
-
-    work = args.workdir
-    if os.path.isdir(work) and os.listdir(work):
-        raise CliError(f"--workdir {work} exists and is not empty; choose another directory")
-    cfg = load_config(args.preset, None, _overrides(args.overrides))
-    result = train_and_evaluate(cfg, work, devices=args.devices, progress=not args.no_progress)
-    print(result["tables"])
-    print("\n".join(improvement_lines(result)))
-    print(f"quickstart finished in {result['seconds']:.0f} s; data, runs and tables "
-          f"({work}/stage2/eval_test.md) are in {work}")
-    return 0
 
 
 # --------------------------------------------------------------------------- parser
@@ -564,7 +325,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         _setup_jax(args)
-        with _one_line_dataset_warnings():
+        with _one_line_warnings():
             return args.func(args)
     except Interrupted as stop:
         print(f"irdepth: {stop}", file=sys.stderr)

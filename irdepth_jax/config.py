@@ -14,12 +14,18 @@ docstring says what the preset is for, the command that uses it and how long it 
     synthetic-benchmark results.
   * `tiny`: a 9.4k-parameter UNet and a 4-block ViT; seconds on a CPU, used by the tests and
     the quickstart.
+
+Renamed keys (`RENAMED_KEYS`) still work under their old names: in overrides and config files
+with a `DeprecatedKeyWarning` naming the new key, and silently in the configs stored by runs
+and checkpoints written before the rename (`from_dict`).
 """
 
 from __future__ import annotations
 
 import ast
 import dataclasses
+import re
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -92,7 +98,7 @@ class Stage1Config:
 
     optimizer: str = "adadelta"  # adadelta | adamw
     learning_rate: float = 1.0  # I-1 rate (AdaDelta's customary 1.0; always explicit)
-    stage12_learning_rate: float = 0.1  # I-2 rate of encoder + reconstruction + gradient branch
+    i2_learning_rate: float = 0.1  # I-2 rate of encoder + reconstruction + gradient branch
     seg_lr_multiplier: float = 10.0  # I-2 segmentation branch rate = multiplier x the rate above
     weight_decay: float = 1e-4  # adamw only
     accum_steps: int = 4  # gradient accumulation (micro-batches per update)
@@ -114,7 +120,7 @@ class Stage1Config:
     recon_loss: str = "l1"  # l1 | l2
     w_rec: float = 0.1  # I-2 weight of the reconstruction loss
     w_seg: float = 1.0  # I-2 weight of the cross-entropy
-    w_grad: float = 1.0  # weight of the gradient (saturation) branch loss, relative to recon
+    w_grad: float = 1.0  # weight of the gradient branch loss (logged loss_gradient), relative to recon
     grad_target_scale: float = 0.25  # saturation target = clip(GCM(ir8 / 255) / scale, 0, 1)
     # False: the single-task segmentation baseline of table 3 (I-2 with CE only, recon / gradient
     # branches frozen); table 2's single-task reconstruction baseline is the I-1 checkpoint.
@@ -161,6 +167,58 @@ class Config:
     eval_every: int = 500
     checkpoint_every: int = 500
     keep_checkpoints: int = 3
+
+
+RENAMED_KEYS: dict[str, str] = {
+    "stage1.stage12_learning_rate": "stage1.i2_learning_rate",
+}
+"""Old dotted config key -> its new name."""
+
+
+class DeprecatedKeyWarning(FutureWarning):
+    """A config key was given under its old name (`RENAMED_KEYS`); it is used as the new one."""
+
+
+def current_key(key: str, where: str = "override") -> str:
+    """The name of a dotted config key now: `key` itself, or for an old name its new one, with a
+    `DeprecatedKeyWarning` naming both (and `where` it was given)."""
+    new = RENAMED_KEYS.get(key.strip())
+    if new is None:
+        return key
+    warnings.warn(f"{where}: config key {key.strip()!r} is deprecated, use {new!r} (same meaning)",
+                  DeprecatedKeyWarning, stacklevel=3)
+    return new
+
+
+def upgrade_dict(d: dict, where: str | None = None) -> dict:
+    """A nested config dict (`to_dict`'s form, possibly partial) with the keys of old names
+    (`RENAMED_KEYS`) moved to the new ones; a `DeprecatedKeyWarning` for each when `where` (the
+    file it came from) is given, silent otherwise (a config stored by an older version).
+
+    Raises ValueError when a key is given under both names.
+    """
+    out = {k: dict(v) if isinstance(v, dict) else v for k, v in d.items()}
+    for old, new in RENAMED_KEYS.items():
+        (old_section, old_name), (new_section, new_name) = old.split("."), new.split(".")
+        section = out.get(old_section)
+        if not isinstance(section, dict) or old_name not in section:
+            continue
+        if new_name in out.get(new_section, {}):
+            raise ValueError(f"config key {old!r} is the old name of {new!r}; give only {new!r}")
+        if where is not None:
+            warnings.warn(f"{where}: config key {old!r} is deprecated, use {new!r} (same "
+                          "meaning)", DeprecatedKeyWarning, stacklevel=2)
+        out.setdefault(new_section, {})[new_name] = section.pop(old_name)
+    return out
+
+
+def renamed_hint(text: str) -> str:
+    """'' or, when `text` (an error message) names an old config field, the sentence that says
+    its new key (for errors the keys cannot be mapped in, e.g. a dataclass keyword of a .py
+    config file)."""
+    hints = [f"{old!r} is now {new!r}" for old, new in RENAMED_KEYS.items()
+             if re.search(rf"\b{re.escape(old.split('.')[-1])}\b", text)]
+    return f" (renamed config key: {'; '.join(hints)})" if hints else ""
 
 
 def available_presets() -> tuple[str, ...]:
@@ -242,7 +300,7 @@ def apply_overrides(cfg: Config, overrides: list[str] | tuple[str, ...]) -> Conf
         if "=" not in item:
             raise ValueError(f"override {item!r} is not of the form key=value")
         key, text = item.split("=", 1)
-        key = key.strip()
+        key = current_key(key.strip(), f"override {item!r}")
         parts = key.split(".")
         if len(parts) == 1:
             cfg = _replace_field(cfg, parts[0], text, key)
@@ -289,7 +347,9 @@ def to_dict(cfg: Config) -> dict:
 
 
 def from_dict(d: dict) -> Config:
-    """Inverse of `to_dict`; unknown keys raise ValueError."""
+    """Inverse of `to_dict`; keys of old names are mapped (`upgrade_dict`: a config stored by an
+    older version), unknown keys raise ValueError."""
+    d = upgrade_dict(d)
     sections = {
         "unet": UNetConfig,
         "depth": DepthConfig,

@@ -29,7 +29,7 @@ from irdepth_jax.train.variables import init_depth, init_unet
 def synthetic_data(cfg: Config, path: str, progress: bool = True) -> str:
     """Renders `cfg.data.num_frames` synthetic frames (`num_labeled` labelled) of
     `cfg.data.height` x `width` into a folder-format dataset at `path`; returns `path`."""
-    from irdepth_jax.data.folder import write_synthetic_dataset
+    from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
     d = cfg.data
     write_synthetic_dataset(path, d.num_frames, d.num_labeled, d.height, d.width, seed=cfg.seed,

@@ -15,7 +15,7 @@ import orbax.checkpoint as ocp
 import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
-from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.train import checkpoint, phase, stages
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
@@ -43,7 +43,7 @@ def train(data, work, *extra):
     (["stage1.steps_i1=0", "stage1.steps_i2=0"], "would train nothing"),
     (["log_every=0"], "log_every=0"),
     (["stage1.learning_rate=nan"], "stage1.learning_rate=nan"),
-    (["stage1.stage12_learning_rate=0"], "stage1.stage12_learning_rate=0"),
+    (["stage1.i2_learning_rate=0"], "stage1.i2_learning_rate=0"),
     (["stage1.seg_lr_multiplier=-1"], "stage1.seg_lr_multiplier=-1"),
     (["--resume"], "holds no run"),
 ])

@@ -6,16 +6,12 @@ import cv2
 import numpy as np
 import pytest
 
-from irdepth_jax.data.folder import (
+from irdepth_jax.data.folder import DatasetError, FolderDataset, encode_depth, write_manifest, write_sample
+from irdepth_jax.data.synthetic_dataset import (
     DEPTH_SPLIT,
     SEG_SPLIT,
-    DatasetError,
-    FolderDataset,
-    encode_depth,
     split_counts,
     synthetic_manifest,
-    write_manifest,
-    write_sample,
     write_synthetic_dataset,
 )
 
@@ -223,3 +219,13 @@ def test_16_bit_counts(tmp_path):
     assert detect_raw_bits(ds, [0, 0, 0, 1], max_frames=2) == 16  # first and last of a sample
     with pytest.raises(ValueError, match="data.raw_bits 12"):
         FolderDataset(tmp_path, raw_bits=12)
+
+
+def test_moved_names_are_still_importable_from_folder():
+    from irdepth_jax.data import folder, synthetic_dataset
+
+    for name in ("DEPTH_SPLIT", "SEG_SPLIT", "split_counts", "synthetic_manifest",
+                 "write_synthetic_dataset"):
+        assert getattr(folder, name) is getattr(synthetic_dataset, name)
+    with pytest.raises(AttributeError, match="no_such"):
+        folder.no_such

@@ -7,17 +7,17 @@ import pathlib
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
 
 LAYERS = [
-    ("foundation", ["config", "configs", "errors", "fileio", "video"]),
+    ("foundation", ["config", "configs", "errors", "fileio", "video", "compile_cache"]),
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
     ("losses and metrics", ["losses", "metrics"]),
     ("data", ["data"]),
     ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.checkpoint",
-                            "train.workdir_lock", "train.runlog", "train.variables"]),
+                            "train.workdir_lock", "train.runlog", "train.variables", "train.legacy_names"]),
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
     ("runs and deployment", ["evaluate", "predict", "export", "workflow"]),
-    ("command line", ["cli", "__main__"]),
+    ("command line", ["cli", "cli_commands", "__main__"]),
 ]
 
 

@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from irdepth_jax.data.folder import FolderDataset, write_synthetic_dataset
+from irdepth_jax.data.folder import FolderDataset
 from irdepth_jax.data.loader import Loader
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
 
 class Toy:

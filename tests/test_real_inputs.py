@@ -13,7 +13,7 @@ import tifffile
 from trained_runs import DATA, copy_run
 
 from irdepth_jax import cli
-from irdepth_jax.data.folder import write_synthetic_dataset
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.predict import predict_files
 from irdepth_jax.train.variables import load_model
 

@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from irdepth_jax.config import CLASS_NAMES, IGNORE_LABEL
-from irdepth_jax.data.folder import FolderDataset, write_synthetic_dataset
+from irdepth_jax.data.folder import FolderDataset
 from irdepth_jax.data.synthetic import CONDITIONS, LIDAR_MAX_RANGE, render_scene
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.imaging.tonemap import camera_like
 
 H, W = 64, 80

@@ -33,13 +33,13 @@ def batch():
 def test_label_params_by_path():
     params = {"enc0": {"conv0": {"kernel": 1}}, "dec_seg_up0": {"up": {"kernel": 2}},
               "head_seg": {"kernel": 3}, "dec_recon_up1": {"kernel": 4},
-              "head_saturation": {"bias": 5}, "segway": {"kernel": 6}}
+              "head_gradient": {"bias": 5}, "segway": {"kernel": 6}}
     from irdepth_jax.train.state import AUX_BRANCH_PATTERN, SEG_BRANCH_PATTERN
     labels = label_params(params, [(SEG_BRANCH_PATTERN, "seg"), (AUX_BRANCH_PATTERN, "aux")],
                           "shared")
     assert labels == {"enc0": {"conv0": {"kernel": "shared"}},
                       "dec_seg_up0": {"up": {"kernel": "seg"}}, "head_seg": {"kernel": "seg"},
-                      "dec_recon_up1": {"kernel": "aux"}, "head_saturation": {"bias": "aux"},
+                      "dec_recon_up1": {"kernel": "aux"}, "head_gradient": {"bias": "aux"},
                       "segway": {"kernel": "shared"}}
 
 
@@ -66,7 +66,7 @@ def _first_update(tx, params):
 
 def test_stage1_i2_group_rates(unet_vars):
     cfg = apply_overrides(CFG, ["stage1.optimizer=adamw", "stage1.weight_decay=0",
-                                "stage1.stage12_learning_rate=0.01",
+                                "stage1.i2_learning_rate=0.01",
                                 "stage1.seg_lr_multiplier=10"])
     tx, lr_fns = stage1_optimizer(cfg, "stage1_i2")
     upd = _first_update(tx, unet_vars["params"])
@@ -75,12 +75,12 @@ def test_stage1_i2_group_rates(unet_vars):
     np.testing.assert_allclose(upd["enc0"]["conv0"]["kernel"], -0.01, rtol=1e-4)
     np.testing.assert_allclose(upd["head_recon"]["kernel"], -0.01, rtol=1e-4)
     assert float(lr_fns["seg"](0)) == pytest.approx(0.1)
-    # single-task: recon / gradient branches frozen, the rest as before
+    # single-task: recon / gradient branches not updated (group no_update), the rest as before
     single = apply_overrides(cfg, ["stage1.multitask=false"])
     tx, _ = stage1_optimizer(single, "stage1_i2")
     upd = _first_update(tx, unet_vars["params"])
     assert float(jnp.abs(upd["head_recon"]["kernel"]).max()) == 0.0
-    assert float(jnp.abs(upd["dec_grad_up2"]["fuse"]["conv0"]["kernel"]).max()) == 0.0
+    assert float(jnp.abs(upd["dec_gradient_up2"]["fuse"]["conv0"]["kernel"]).max()) == 0.0
     np.testing.assert_allclose(upd["head_seg"]["kernel"], -0.1, rtol=1e-4)
 
 
@@ -89,7 +89,7 @@ def test_optimizers_are_shared_by_equal_runs():
     run reuses the first one's compiled train step; another config gets its own."""
     assert stage1_optimizer(CFG, "stage1_i2") is stage1_optimizer(CFG, "stage1_i2")
     assert stage2_optimizer(CFG, 10) is stage2_optimizer(CFG, 10)
-    other = apply_overrides(CFG, ["stage1.stage12_learning_rate=0.5"])
+    other = apply_overrides(CFG, ["stage1.i2_learning_rate=0.5"])
     assert stage1_optimizer(other, "stage1_i2") is not stage1_optimizer(CFG, "stage1_i2")
     assert stage2_optimizer(CFG, 11) is not stage2_optimizer(CFG, 10)
 
@@ -128,6 +128,8 @@ def test_stage1_step_is_finite_and_learns(unet_vars, batch, phase):
         losses.append(float(metrics["loss"]))
     assert all(np.isfinite(losses)) and np.isfinite(float(metrics["grad_norm"]))
     assert losses[-1] < losses[0]
+    # the gradient branch's loss is logged under a name apart from the step's gradient norm
+    assert {"recon", "loss_gradient", "grad_norm", "psnr"} <= set(metrics) and "grad" not in metrics
     if phase == "stage1_i2":
         assert float(metrics["ce"]) > 0
 

@@ -13,9 +13,9 @@ from trained_runs import QUICK, STEPS, copy_run
 from irdepth_jax import cli
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.augment import augment
-from irdepth_jax.data.folder import write_synthetic_dataset
 from irdepth_jax.data.source import DataSource, phase_frames, stage1_i2_frames
 from irdepth_jax.data.synthetic import render_scene
+from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.errors import RunError
 from irdepth_jax.evaluators import evaluate_stage1
 from irdepth_jax.models.pipeline import unet_input

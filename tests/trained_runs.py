@@ -39,7 +39,7 @@ def train_and_evaluate_learning(workdir):
 
 
 def write_data(path):
-    from irdepth_jax.data.folder import write_synthetic_dataset
+    from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
     write_synthetic_dataset(path, **DATA, progress=False)
     return path

@@ -31,7 +31,7 @@ def get_config() -> Config:
         depth=DepthConfig(encoder="tiny", input_height=56, input_width=70),
         data=DataConfig(height=64, width=80, num_frames=96, num_labeled=48),
         stage1=Stage1Config(batch_size=4, epochs_i1=10, epochs_i2=8, accum_steps=2,
-                            optimizer="adamw", learning_rate=3e-3, stage12_learning_rate=5e-4),
+                            optimizer="adamw", learning_rate=3e-3, i2_learning_rate=5e-4),
         stage2=Stage2Config(batch_size=4, epochs=10, learning_rate=2e-4),
         log_every=5,
         eval_every=50,

@@ -1,5 +1,6 @@
-"""Our on-disk dataset format: reader (`FolderDataset`), writer (`write_sample`, `write_manifest`)
-and the synthetic dataset writer behind `irdepth synth` (`write_synthetic_dataset`).
+"""Our on-disk dataset format: reader (`FolderDataset`) and writer (`write_sample`,
+`write_manifest`). The synthetic dataset writer behind `irdepth synth` (`write_synthetic_dataset`)
+is `irdepth_jax.data.synthetic_dataset`'s (its names are also importable from here, as before).
 
 ## Folder dataset format
 
@@ -46,19 +47,16 @@ unlabelled), `labeled` bool, `condition` str, `id` str.
 
 from __future__ import annotations
 
+import importlib
 import json
-import math
 import pathlib
 import re
-import shutil
 
 import cv2
 import numpy as np
-from tqdm import tqdm
 
 from irdepth_jax.config import IGNORE_LABEL
 from irdepth_jax.data.rawio import accepted_bits
-from irdepth_jax.data.synthetic import CONDITIONS, render_scene
 from irdepth_jax.fileio import make_dirs, write_bytes, write_png
 from irdepth_jax.imaging.raw import check_raw
 
@@ -67,13 +65,10 @@ FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")
 DEPTH_SCALE = 256.0
 """uint16 depth PNG counts per metre."""
-DEPTH_SPLIT = (1500, 400, 392)
-"""The paper's Stage II train / val / test frame counts (2292 frames)."""
-SEG_SPLIT = (600, 100, 100)
-"""The paper's Stage I-2 train / val / test labelled frame counts (800 frames)."""
+MAP_FOLDERS = ("raw14", "ir8", "depth", "seg", "rgb", "depth_dense")
+"""The per-frame PNG folders of a dataset."""
 
 _ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
-_FIELDS = ("raw14", "ir8", "depth", "seg", "rgb", "depth_dense")
 _RECORD_KEYS = ("id", "split", "seg_split", "condition", "labeled")
 
 
@@ -344,90 +339,11 @@ class FolderDataset:
         return self._max_depth[split]
 
 
-# ----------------------------------------------------------------------------- synthetic datasets
+_MOVED = ("DEPTH_SPLIT", "SEG_SPLIT", "split_counts", "synthetic_manifest", "write_synthetic_dataset")
+"""Names that moved to `irdepth_jax.data.synthetic_dataset`, still importable from here."""
 
 
-def split_counts(n: int, proportions: tuple[int, ...]) -> tuple[int, ...]:
-    """Splits n items in the given proportions (largest remainder; sums to n exactly)."""
-    total = sum(proportions)
-    exact = [n * p / total for p in proportions]
-    counts = [math.floor(e) for e in exact]
-    order = sorted(range(len(exact)), key=lambda k: counts[k] - exact[k])
-    for k in order[: n - sum(counts)]:
-        counts[k] += 1
-    return tuple(counts)
-
-
-def synthetic_manifest(n: int, labeled: int, seed: int, split: str | None = None) -> list[dict]:
-    """Frame records of a synthetic dataset: the paper's split proportions scaled to n / labeled,
-    or (`split` 'train' | 'val' | 'test') every frame in that one split, the first `labeled` of
-    them labelled (an evaluation set rendered apart from the training data).
-
-    Conditions cycle day, dusk, night over the frame index; the depth split is a seeded random
-    assignment (1500:400:392); the labelled frames are drawn inside the depth splits so that
-    segmentation train / val / test frames (600:100:100) are depth train / val / test frames too
-    (no test image is seen in Stage I training). Requires labeled <= n and each labelled split to
-    fit its depth split.
-    """
-    if n < 1 or not 0 <= labeled <= n:
-        raise ValueError(f"need n >= 1 and 0 <= labeled <= n, got n={n}, labeled={labeled}")
-    if split is not None and split not in SPLITS:
-        raise ValueError(f"split {split!r}: must be one of {SPLITS}")
-    rng = np.random.default_rng([seed, 0x5EC])
-    one = [int(s == split) for s in SPLITS]
-    depth_n = split_counts(n, DEPTH_SPLIT if split is None else one)
-    seg_n = split_counts(labeled, SEG_SPLIT if split is None else one)
-    order = rng.permutation(n)
-    records = [dict(id=f"{i:06d}", split=None, seg_split=None,
-                    condition=CONDITIONS[i % len(CONDITIONS)], labeled=False) for i in range(n)]
-    start = 0
-    for split, dn, sn in zip(SPLITS, depth_n, seg_n):
-        members = order[start:start + dn]
-        start += dn
-        if sn > dn:
-            raise ValueError(f"{labeled} labelled of {n} frames: {sn} {split} labels do not fit in "
-                             f"{dn} {split} frames; use fewer labelled frames")
-        for j, i in enumerate(members):
-            records[i]["split"] = split
-            if j < sn:
-                records[i]["labeled"], records[i]["seg_split"] = True, split
-    return records
-
-
-def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: int, seed: int = 0,
-                            progress: bool = True, overwrite: bool = False,
-                            split: str | None = None) -> pathlib.Path:
-    """Renders n synthetic frames into a folder dataset (what `irdepth synth` runs).
-
-    Args:
-      out_dir: dataset directory; must be absent or empty unless overwrite=True, which removes
-        an existing dataset's manifest and map folders first (other files are left alone).
-      n, labeled: total and labelled frame counts (splits: see `synthetic_manifest`).
-      split: None (the paper's proportions) or one split holding every frame.
-      height, width: frame size.
-      seed: dataset seed; frame i is `render_scene(seed_i, condition_i, ...)` with seed_i
-        derived from (seed, i).
-      progress: show a tqdm progress bar.
-
-    Returns:
-      the dataset directory.
-    """
-    out = pathlib.Path(out_dir)
-    if out.exists() and not out.is_dir():
-        raise DatasetError(f"{out}: exists and is not a directory")
-    if out.is_dir() and any(out.iterdir()):
-        if not overwrite:
-            raise DatasetError(f"{out}: directory exists and is not empty; choose another path or "
-                               "pass overwrite=True (--overwrite) to replace the dataset")
-        (out / "manifest.json").unlink(missing_ok=True)
-        for field in _FIELDS:
-            shutil.rmtree(out / field, ignore_errors=True)
-    records = synthetic_manifest(n, labeled, seed, split)
-    for r in tqdm(records, desc=f"synth {out.name}", disable=not progress, unit="frame"):
-        frame_seed = int(np.random.SeedSequence([seed, int(r["id"])]).generate_state(1)[0])
-        s = render_scene(frame_seed, r["condition"], height, width)
-        sample = dict(raw14=s["raw14"], ir8=s["ir8"], rgb=s["rgb"], depth=s["depth_lidar"],
-                      valid=s["valid"], seg=s["seg"], labeled=r["labeled"], depth_dense=s["depth"])
-        r.update(write_sample(out, r["id"], sample))
-    write_manifest(out, records, height, width, source="synthetic", seed=int(seed))
-    return out
+def __getattr__(name):  # imported on use: synthetic_dataset imports this module
+    if name in _MOVED:
+        return getattr(importlib.import_module("irdepth_jax.data.synthetic_dataset"), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -3,9 +3,9 @@
     raw (B, H, W[, 1]) -> normalise -> edge-pad to a multiple of 2^stages
       encoder: per stage 2 x (3x3 conv, BN, ReLU) -> skip, then 2x2 max-pool; widths cfg.widths
       bottleneck: 2 x (3x3 conv, BN, ReLU) to cfg.bottleneck channels
-      3 decoders (recon, seg, grad), each with one up block per stage, deepest first:
+      3 decoders (recon, seg, gradient), each with one up block per stage, deepest first:
         2x2 stride-2 transposed conv, BN, ReLU -> [RGG] -> concat with skip -> double conv
-      heads: 1x1 conv (+ sigmoid for recon and saturation) -> crop back to (H, W)
+      heads: 1x1 conv (+ sigmoid for recon and gradient) -> crop back to (H, W)
 
 Sizes: any H, W work. The input is edge-padded (replicating the last row / column) to the next
 multiple of 16 (2^len(widths)) and every output is cropped back, so real sensor sizes (640x512,
@@ -23,8 +23,14 @@ from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
 from irdepth_jax.imaging.raw import normalize_raw
 from irdepth_jax.models.rgg import RGG
 
-TASKS = ("recon", "seg", "grad")
-"""Decoder branches: reconstruction (-> Value), segmentation (-> Hue), gradient (-> Saturation)."""
+TASKS = ("recon", "seg", "gradient")
+"""Decoder branches: reconstruction (-> Value), segmentation (-> Hue), gradient (the radiation-
+gradient structure map -> Saturation). Each has decoder blocks ``dec_<task>_up<i>`` and a head
+``head_<task>``."""
+
+LEGACY_MODULE_NAMES = (("dec_grad_up{i}", "dec_gradient_up{i}"), ("head_saturation", "head_gradient"))
+"""(old, new) module names of the gradient branch: checkpoints written before it had one name
+hold the old ones (``{i}``: any decoder stage), renamed when they are restored."""
 
 
 def max_pool_2x2(x):
@@ -131,8 +137,8 @@ class MTSAUNet(nn.Module):
         pmap / shard_map); None for a single device.
 
     Parameter tree (what optimizer partitions match on): ``enc0..enc{n-1}``, ``bottleneck``,
-    ``dec_{recon,seg,grad}_up{i}`` (children ``up``, ``up_bn``, ``fuse``, and ``rgg`` when
-    cfg.use_rgg), ``head_recon``, ``head_seg``, ``head_saturation``.
+    ``dec_{recon,seg,gradient}_up{i}`` (children ``up``, ``up_bn``, ``fuse``, and ``rgg`` when
+    cfg.use_rgg), ``head_recon``, ``head_seg``, ``head_gradient``.
     """
 
     cfg: UNetConfig
@@ -153,7 +159,8 @@ class MTSAUNet(nn.Module):
           dict of float32 arrays:
             recon (B, H, W, 1) in [0, 1], reconstructed grey image (1x1 conv + sigmoid);
             seg_logits (B, H, W, num_classes);
-            saturation (B, H, W, 1) in [0, 1], gradient/structure branch (1x1 conv + sigmoid);
+            saturation (B, H, W, 1) in [0, 1], the gradient branch's structure map (1x1 conv +
+              sigmoid), the HSV image's Saturation channel;
             input_gradient (B, H, W, 1), GCM of the normalised input.
         """
         cfg = self.cfg
@@ -212,6 +219,6 @@ class MTSAUNet(nn.Module):
         return {
             "recon": nn.sigmoid(nn.Conv(1, (1, 1), name="head_recon")(features["recon"])),
             "seg_logits": nn.Conv(cfg.num_classes, (1, 1), name="head_seg")(features["seg"]),
-            "saturation": nn.sigmoid(nn.Conv(1, (1, 1), name="head_saturation")(features["grad"])),
+            "saturation": nn.sigmoid(nn.Conv(1, (1, 1), name="head_gradient")(features["gradient"])),
             "input_gradient": gcm[:, :height, :width],
         }

@@ -15,6 +15,9 @@ during a save leaves a ``<step>.orbax-checkpoint-tmp-*`` directory that is never
 step: restore picks the last finalised one (and the manager removes the leftover on start).
 A save that cannot fit on the disk is refused before it starts (OSError ENOSPC), and a finished
 run whose weights hold NaN / inf is refused when it is loaded (`restore_items`).
+
+Renamed keys (`train.legacy_names`: the gradient branch's modules, an optimizer group) are
+mapped on restore, so checkpoints written under the old names still load and resume.
 """
 
 from __future__ import annotations
@@ -31,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from irdepth_jax.train.legacy_names import from_legacy, has_legacy_keys, to_legacy
 from irdepth_jax.train.state import STAGES, TrainState, path_to_str
 
 
@@ -188,13 +192,19 @@ class Checkpointer:
                                   f"{meta.get('stage')!r} checkpoint, expected "
                                   f"{' or '.join(map(repr, stages))}")
         stored = self.manager.item_metadata(step)
+        legacy = set()  # items stored under old key names (`train.legacy_names`)
         for name, template in templates.items():
             if stored.get(name) is None:
                 raise CheckpointError(f"checkpoint {self.directory} step {step} has no {name!r}")
-            _check_shapes(stored[name].tree, template, f"{self.directory} step {step} {name}")
+            if has_legacy_keys(stored[name].tree):
+                legacy.add(name)
+            _check_shapes(stored[name].tree, to_legacy(template) if name in legacy else template,
+                          f"{self.directory} step {step} {name}")
         restored = self.manager.restore(step, args=ocp.args.Composite(**{
-            name: ocp.args.StandardRestore(_abstract(t)) for name, t in templates.items()}))
-        items = {name: restored[name] for name in templates}
+            name: ocp.args.StandardRestore(_abstract(to_legacy(t) if name in legacy else t))
+            for name, t in templates.items()}))
+        items = {name: from_legacy(restored[name]) if name in legacy else restored[name]
+                 for name in templates}
         if check_finite:
             _check_finite(items, f"{self.directory} step {step}")
         return items, meta

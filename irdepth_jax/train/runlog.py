@@ -17,7 +17,7 @@ import sys
 
 import jax
 
-from irdepth_jax.config import Config, to_dict
+from irdepth_jax.config import Config, to_dict, upgrade_dict
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import write_bytes
 from irdepth_jax.train.workdir_lock import holds_run
@@ -127,7 +127,7 @@ def prepare_workdir(workdir: str, cfg: Config, resume: bool) -> None:
         read_metrics(metrics)
     if resume and os.path.exists(path):
         with open(path) as f:
-            stored = json.load(f)
+            stored = upgrade_dict(json.load(f))  # a run started before a key was renamed
         current = json.loads(json.dumps(to_dict(cfg)))
         if stored != current:
             changed = sorted(k for k in _flatten(current)

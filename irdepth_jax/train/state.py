@@ -9,7 +9,7 @@ means a new state):
 * ``stage1_i2``: soft multi-task fine-tuning on the labelled frames; two parameter groups,
   ``seg`` (the segmentation decoder + head) at ``seg_lr_multiplier`` x the rate of ``shared``
   (encoder, reconstruction and gradient branches). With ``stage1.multitask=False`` the
-  reconstruction / gradient branches are the group ``frozen`` (``optax.set_to_zero``): the
+  reconstruction / gradient branches are the group ``no_update`` (``optax.set_to_zero``): the
   single-task segmentation baseline of the paper's table 3.
 * ``stage2``: Depth Anything V2 fine-tuning, AdamW (0.9, 0.999, wd 0.01) with the ViT
   backbone (top-level ``pretrained``) at 1/``head_lr_multiplier`` of the head's rate, both
@@ -39,8 +39,15 @@ STAGES = ("stage1_i1", "stage1_i2", "stage2")
 # (decoders dec_<task>_up<i>, heads head_<task>) and `models.depth_anything.DepthAnythingV2`
 # (backbone "pretrained", head "depth_head").
 SEG_BRANCH_PATTERN = r"^(dec_seg_|head_seg(/|$))"
-AUX_BRANCH_PATTERN = r"^(dec_(recon|grad)_|head_(recon|saturation)(/|$))"
+AUX_BRANCH_PATTERN = r"^(dec_(recon|gradient)_|head_(recon|gradient)(/|$))"
 BACKBONE_PATTERN = r"^pretrained(/|$)"
+
+NO_UPDATE = "no_update"
+"""Group of the parameters a phase leaves as they are (``optax.set_to_zero``)."""
+LEGACY_GROUP_NAMES = (("frozen", NO_UPDATE),)
+"""(old, new) group names: the optimizer state keys its per-group states by group
+(``opt_state.inner_states``), so a checkpoint written before a rename holds the old name;
+renamed when it is restored (`train.checkpoint`)."""
 
 Schedule = Callable[[jax.Array], jax.Array]
 
@@ -172,13 +179,13 @@ def stage1_optimizer(cfg: Config, phase: str
             "all": _constant(s1.learning_rate)}
     if phase != "stage1_i2":
         raise ValueError(f"unknown Stage I phase {phase!r}")
-    shared_lr = s1.stage12_learning_rate
+    shared_lr = s1.i2_learning_rate
     seg_lr = shared_lr * s1.seg_lr_multiplier
     rules = ((SEG_BRANCH_PATTERN, "seg"),
-             (AUX_BRANCH_PATTERN, "shared" if s1.multitask else "frozen"))
+             (AUX_BRANCH_PATTERN, "shared" if s1.multitask else NO_UPDATE))
     transforms = {"seg": base_optimizer(s1.optimizer, seg_lr, s1.weight_decay),
                   "shared": base_optimizer(s1.optimizer, shared_lr, s1.weight_decay),
-                  "frozen": optax.set_to_zero()}
+                  NO_UPDATE: optax.set_to_zero()}
     lr_fns = {"seg": _constant(seg_lr), "shared": _constant(shared_lr)}
     labels = functools.partial(label_params, rules=rules, default="shared")
     return optax.multi_transform(transforms, labels), lr_fns

@@ -150,7 +150,8 @@ def stage1_targets(ir8: jax.Array, grad_scale: float) -> tuple[jax.Array, jax.Ar
 
     Returns:
       (recon target (B, H, W, 1) = ir8 / 255,
-       saturation target (B, H, W, 1) = clip(GCM(ir8 / 255) / grad_scale, 0, 1)).
+       gradient-branch (saturation) target (B, H, W, 1) = clip(GCM(ir8 / 255) / grad_scale,
+       0, 1)).
     """
     target = ir8.astype(jnp.float32)[..., None] / 255.0
     return target, jnp.clip(gradient_magnitude(target) / grad_scale, 0.0, 1.0)
@@ -159,9 +160,12 @@ def stage1_targets(ir8: jax.Array, grad_scale: float) -> tuple[jax.Array, jax.Ar
 def stage1_loss_fn(cfg: Config, phase: str, axis_name: str | None = None) -> LossFn:
     """The per-device Stage I loss of `phase` for `make_train_step`.
 
-    * ``stage1_i1``: recon + w_grad * grad (all frames; labels unused).
-    * ``stage1_i2`` (multitask): w_seg * CE + w_rec * (recon + w_grad * grad): every branch
-      trains, the auxiliary branches keep their I-1 balance at the weight w_rec.
+    * ``stage1_i1``: recon + w_grad * loss_gradient (all frames; labels unused).
+    * ``stage1_i2`` (multitask): w_seg * CE + w_rec * (recon + w_grad * loss_gradient): every
+      branch trains, the auxiliary branches keep their I-1 balance at the weight w_rec.
+
+    The metrics are the terms (``recon``, ``loss_gradient``: the gradient branch's error against
+    its target, not to be confused with the step's ``grad_norm``; ``ce`` in I-2) and ``psnr``.
     * ``stage1_i2`` with ``stage1.multitask=False``: CE only (the single-task segmentation
       baseline; the optimizer also freezes the recon / gradient branches).
 
@@ -179,13 +183,14 @@ def stage1_loss_fn(cfg: Config, phase: str, axis_name: str | None = None) -> Los
                                    train=True, mutable=["batch_stats"])
         recon_t, sat_t = stage1_targets(batch["ir8"], s1.grad_target_scale)
         terms = {"recon": reconstruction_loss(out["recon"], recon_t, kind=s1.recon_loss),
-                 "grad": reconstruction_loss(out["saturation"], sat_t, kind=s1.recon_loss)}
+                 "loss_gradient": reconstruction_loss(out["saturation"], sat_t,
+                                                      kind=s1.recon_loss)}
         if phase == "stage1_i1":
-            weights = {"recon": 1.0, "grad": s1.w_grad}
+            weights = {"recon": 1.0, "loss_gradient": s1.w_grad}
         else:
             terms["ce"] = cross_entropy_loss(out["seg_logits"], batch["seg"], IGNORE_LABEL)
             aux = s1.w_rec if s1.multitask else 0.0
-            weights = {"ce": s1.w_seg, "recon": aux, "grad": aux * s1.w_grad}
+            weights = {"ce": s1.w_seg, "recon": aux, "loss_gradient": aux * s1.w_grad}
         total, _ = multitask_loss(terms, weights)
         mse = jnp.mean((out["recon"] - recon_t) ** 2)
         metrics = {**terms, "psnr": -10.0 * jnp.log10(jnp.maximum(mse, 1e-10))}
