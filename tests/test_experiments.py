@@ -7,38 +7,27 @@ tables, as it is for the real runs.
 
 from __future__ import annotations
 
-import importlib.util
+import glob
+import importlib
 import json
 import math
 import os
-import sys
 
 import jax
 import numpy as np
 import pytest
 
+from experiments import cache, claims, report, runner
+
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-EXPERIMENTS = os.path.join(REPO, "experiments")
 TABLES = ("table1_preprocessing", "table2_multitask_reconstruction",
           "table3_multitask_segmentation", "table4_illumination", "table5_rgg_reconstruction",
           "table6_rgg_segmentation", "table7_sky_loss")
 
 
-def load_runner():
-    """experiments/runner.py as the module `runner` (how the table scripts import it)."""
-    if EXPERIMENTS not in sys.path:
-        sys.path.insert(0, EXPERIMENTS)
-    return importlib.import_module("runner")
-
-
 def load_script(name: str):
-    """Imports experiments/<name>.py."""
-    load_runner()
-    spec = importlib.util.spec_from_file_location(f"experiments_{name}",
-                                                  os.path.join(EXPERIMENTS, f"{name}.py"))
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    """The module experiments.<name> (a table script)."""
+    return importlib.import_module(f"experiments.{name}")
 
 
 def quick_cache_dir(tmp_path_factory) -> str:
@@ -87,6 +76,17 @@ def test_quick_outputs(quick_results, name):
     # one row per arm, every declared column, finite numbers in range
     assert record["columns"] == list(table.columns)
     assert [r["series"] for r in record["rows"]] == [a.label for a in table.arms]
+    assert record["eval_data"]["num_frames"] == runner.QUICK_EVAL_FRAMES
+    assert record["protocol"] == {"name": "synthetic", "stride": 1, "align": None}
+    with np.load(os.path.join(out, "frames.npz")) as f:  # per-frame values behind each mean
+        for i, row in enumerate(record["rows"]):
+            for col in table.columns:
+                if col == "miou":
+                    assert f[f"{i}:0:seg_cm"].ndim == 3
+                    continue
+                values = f[f"{i}:0:{col}"]
+                assert len(values) == row["per_seed"]["0"]["count"]
+                assert float(np.nanmean(values)) == pytest.approx(row["per_seed"]["0"][col], rel=1e-5)
     for row in record["rows"]:
         values = row["per_seed"]["0"]
         assert values["count"] > 0
@@ -160,7 +160,7 @@ def test_rerun_is_cached_and_an_unfinished_run_resumes(quick_results, quick_cach
     from scratch: the checkpoint is at the last step) and reproduces the same metrics."""
     record = quick_results["table7_sky_loss"][0]
     run = _row(record, "without sky loss")["per_seed"]["0"]["run"]
-    eval_file = os.path.join(quick_cache, "runs", run, "eval_test.json")
+    (eval_file,) = glob.glob(os.path.join(quick_cache, "runs", run, "eval-*.json"))
     os.remove(eval_file)
     script = load_script("table7_sky_loss")
     again = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out",
@@ -182,7 +182,7 @@ def test_help_explains_the_options(capsys):
     text = capsys.readouterr().out
     for option in ("--preset", "--seeds", "--data", "--out", "--quick", "--set", "--cache"):
         assert option in text
-    assert "SYNTHETIC" in text
+    assert "SYNTHETIC" in text and "--eval-frames" in text and "MS2 protocol" in text
 
 
 def test_bad_arguments_are_named():
@@ -194,59 +194,171 @@ def test_bad_arguments_are_named():
 
 
 def test_summarise_hand_numbers():
-    runner = load_runner()
-    s = runner.summarise([1.0, 2.0, 4.0])
+    s = report.summarise([1.0, 2.0, 4.0])
     assert s["mean"] == pytest.approx(7 / 3)
     assert s["std"] == pytest.approx(math.sqrt(((1 - 7 / 3) ** 2 + (2 - 7 / 3) ** 2
                                                 + (4 - 7 / 3) ** 2) / 2))
     assert s["n"] == 3
-    assert runner.summarise([float("nan"), 3.0]) == {"mean": 3.0, "std": 0.0, "n": 1}
-    assert math.isnan(runner.summarise([float("nan")])["mean"])
+    assert report.summarise([float("nan"), 3.0]) == {"mean": 3.0, "std": 0.0, "n": 1}
+    assert math.isnan(report.summarise([float("nan")])["mean"])
 
 
 def test_i1_config_ignores_only_i2_settings():
-    runner = load_runner()
     from irdepth_jax.config import apply_overrides, get_config
 
     base = get_config("tiny")
     single = apply_overrides(base, ["stage1.multitask=false", "stage1.w_rec=0.5"])
-    assert runner.i1_config(single, base) == runner.i1_config(base, base)
-    assert runner.i1_config(base, base).stage1.steps_i2 == 0
+    assert cache.i1_config(single, base) == cache.i1_config(base, base)
+    assert cache.i1_config(base, base).stage1.steps_i2 == 0
     other_i1 = apply_overrides(base, ["stage1.learning_rate=0.5"])
-    assert runner.i1_config(other_i1, base) != runner.i1_config(base, base)
+    assert cache.i1_config(other_i1, base) != cache.i1_config(base, base)
     no_rgg = apply_overrides(base, ["unet.use_rgg=false"])
-    assert runner.i1_config(no_rgg, base) != runner.i1_config(base, base)
+    assert cache.i1_config(no_rgg, base) != cache.i1_config(base, base)
 
 
-def test_check_claims_signs_and_verdicts():
-    """Hand-made two-row records: a lower-is-better column counts a decrease as agreement."""
-    runner = load_runner()
-    claim = runner.Claim("t", "A beats B (AbsRel)", ("A", "all"), ("B", "all"), "abs_rel",
-                         ("A", "B"))
-    record = {"rows": [
-        {"series": "A", "group": "all", "per_seed": {"0": {"abs_rel": 0.10}, "1": {"abs_rel": 0.30}}},
-        {"series": "B", "group": "all", "per_seed": {"0": {"abs_rel": 0.20}, "1": {"abs_rel": 0.20}}}],
-        "paper": {"A": {"abs_rel": 0.05}, "B": {"abs_rel": 0.08}}}
-    (out,) = runner.check_claims({"t": record}, [claim])
-    assert out["diff_mean"] == pytest.approx(0.0) and out["n"] == 2
-    assert out["diff_std"] == pytest.approx(math.sqrt(0.02))  # diffs +0.1 and -0.1
-    assert out["agree"] == 1 and out["verdict"] == "mixed"
-    assert out["paper_diff"] == pytest.approx(0.03)
-    record["rows"][0]["per_seed"]["1"]["abs_rel"] = 0.15
-    assert runner.check_claims({"t": record}, [claim])[0]["verdict"] == "holds"
+def test_bootstrap_signs_and_a_constant_difference():
+    """ours = base + 0.1 on every frame and seed: effect 0.1 with a zero-width interval; a
+    lower-is-better column counts a decrease as agreement."""
+    base = [np.linspace(0.2, 0.8, 50), np.linspace(0.3, 0.7, 50)]
+    up = claims.bootstrap([b + 0.1 for b in base], base, "d1", replicates=500)
+    assert up["effect"] == pytest.approx(0.1) and up["seeds"] == 2 and up["frames"] == 50
+    assert up["low"] == pytest.approx(0.1) and up["high"] == pytest.approx(0.1)
+    down = claims.bootstrap([b - 0.1 for b in base], base, "abs_rel", replicates=500)
+    assert down["effect"] == pytest.approx(0.1)  # lower AbsRel favours `ours`
+    nan = [np.r_[b[:-1], np.nan] for b in base]  # a frame without valid pixels is dropped
+    assert claims.bootstrap([b + 0.1 for b in nan], nan, "d1", replicates=200)["frames"] == 49
+
+
+def test_bootstrap_standard_error_matches_the_formula():
+    """One seed, iid frame differences of std sigma: the bootstrap SE of the mean is
+    sigma / sqrt(F) (within its own sampling error), the detectable effect 2.80 x that."""
+    rng = np.random.default_rng(0)
+    frames, sigma = 400, 0.05
+    base = rng.uniform(0.3, 0.7, frames)
+    ours = base + 0.01 + sigma * rng.standard_normal(frames)
+    stats = claims.bootstrap([ours], [base], "d1", replicates=4000)
+    sd = float(np.std(ours - base, ddof=0))
+    assert stats["effect"] == pytest.approx(float(np.mean(ours - base)))
+    assert stats["se"] == pytest.approx(sd / math.sqrt(frames), rel=0.08)
+    assert stats["detectable"] == pytest.approx(2.8016 * stats["se"], rel=1e-4)
+    assert stats["low"] < stats["effect"] < stats["high"]
+
+
+def test_bootstrap_seed_spread_widens_the_interval():
+    """Seeds that disagree (+0.05 and -0.05) give an interval containing 0, however many
+    frames; seeds that agree exclude it."""
+    base = [np.full(300, 0.5)] * 3
+    mixed = claims.bootstrap([base[0] + 0.05, base[1] - 0.05, base[2] + 0.05], base, "d1",
+                             replicates=2000)
+    assert mixed["low"] < 0 < mixed["high"]
+    agree = claims.bootstrap([b + 0.05 for b in base], base, "d1", replicates=2000)
+    assert agree["low"] > 0
+
+
+def test_bootstrap_miou_pools_confusion_matrices():
+    """mIoU claims resample frames' confusion matrices and pool them (not a mean of per-frame
+    IoUs): two classes, `ours` perfect, `base` confusing half of class 1."""
+    perfect = np.array([[10, 0], [0, 10]])
+    half = np.array([[10, 0], [5, 5]])
+    stats = claims.bootstrap([np.stack([perfect] * 20)], [np.stack([half] * 20)], "miou",
+                             replicates=300)
+    # base IoU: class 0 = 10 / 15, class 1 = 5 / 10 -> mIoU 7/12; ours 1
+    assert stats["effect"] == pytest.approx(1 - 7 / 12, rel=1e-5)
+
+
+def test_verdicts():
+    stats = {"low": 0.01, "high": 0.05, "detectable": 0.02}
+    assert claims.verdict(stats, 0.03) == "reproduced"
+    assert claims.verdict({**stats, "low": -0.05, "high": -0.01}, 0.03) == "opposite"
+    assert claims.verdict({**stats, "low": -0.01}, 0.01) == "undecided at this budget"
+    assert claims.verdict({**stats, "low": -0.01}, 0.03) == "not reproduced"
+    assert claims.verdict(stats, -0.002).startswith("no claim")
 
 
 def test_claims_script_lists_every_claim(quick_results, tmp_path):
-    claims = load_script("claims")
     results = os.path.dirname(next(iter(quick_results.values()))[1])
-    claims.main(["--results", results, "--out", str(tmp_path / "claims.md")])
+    claims.main(["--results", results, "--out", str(tmp_path / "claims.md"),
+                 "--replicates", "200"])
     text = (tmp_path / "claims.md").read_text()
-    runner = load_runner()
-    expected = runner.check_claims(runner.load_results(results))
-    assert len(expected) == len(runner.CLAIMS)
+    expected = claims.check_claims(claims.load_results(results), replicates=200)
+    assert len(expected) == len(claims.CLAIMS)
     assert "SYNTHETIC" in text
     for c in expected:
-        assert f"| {c['claim']} | {c['table']} | {c['diff_mean']:+.4f}" in text
+        assert f"| {c['claim']} | {c['table']} | {c['paper_effect']:+.4f} | {c['effect']:+.4f} [" in text
+        assert f"| {c['verdict']} |" in text
+        # the effect is the difference of the table's own per-seed means
+        rows = {(r["series"], r["group"]): r for r in quick_results[c["table"]][0]["rows"]}
+        claim = next(k for k in claims.CLAIMS if k.text == c["claim"] and k.table == c["table"])
+        sign = 1 if c["column"] in report.HIGHER_IS_BETTER else -1
+        mean = sign * (rows[claim.ours]["per_seed"]["0"][c["column"]]
+                       - rows[claim.baseline]["per_seed"]["0"][c["column"]])
+        assert c["effect"] == pytest.approx(mean, rel=1e-4, abs=1e-6)
+
+
+def _ms2_layout(root, frames: int = 11, size=(32, 48)):
+    """A tiny MS2 root: one sequence per split list (train, val, test day / night / rainy)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    root.mkdir(parents=True)
+    for split in ("train", "val", "test_day", "test_night", "test_rainy"):
+        seq = f"_seq_{split}"
+        (root / f"{split}_list.txt").write_text(seq + "\n")
+        img_dir = root / "sync_data" / seq / "thr" / "img_left"
+        depth_dir = root / "proj_depth" / seq / "thr" / "depth_filtered"
+        img_dir.mkdir(parents=True)
+        depth_dir.mkdir(parents=True)
+        for k in range(frames):
+            cv2.imwrite(str(img_dir / f"{k:06d}.png"), rng.integers(3000, 6000, size).astype(np.uint16))
+            depth = np.where(rng.random(size) < 0.5, rng.integers(256, 60 * 256, size), 0)
+            cv2.imwrite(str(depth_dir / f"{k:06d}.png"), depth.astype(np.uint16))
+    return root
+
+
+def test_the_tables_on_a_users_ms2_dataset(quick_cache, tmp_path):
+    """--data MS2_ROOT: trained on its train list, evaluated with the MS2 protocol: every 10th
+    frame of the three test lists, median-scaled, one group per test condition."""
+    root = _ms2_layout(tmp_path / "ms2")
+    script = load_script("table7_sky_loss")
+    record = script.main(script.TABLE, [
+        "--quick", "--data", str(root), "--cache", quick_cache, "--out", str(tmp_path / "out"),
+        "--no-progress", "--set", "stage1.seg_labels=synthetic", "stage1.synthetic_labeled=8"])
+    assert record["synthetic"] is False and record["data"]["format"] == "ms2"
+    assert record["protocol"] == {"name": "ms2", "stride": 10, "align": "median"}
+    assert [r["per_seed"]["0"]["count"] for r in record["rows"]] == [4, 4]  # 33 frames [0:-1:10]
+    md = (tmp_path / "out" / "results.md").read_text()
+    assert "SYNTHETIC" not in md and "ms2 protocol (every 10th frame, alignment median)" in md
+    run = record["rows"][0]["per_seed"]["0"]["run"]
+    (eval_file,) = glob.glob(os.path.join(quick_cache, "runs", run, "eval-*.json"))
+    with open(eval_file) as f:
+        groups = json.load(f)["stage2"]
+    # frames 0, 10 (day list), 20 (night), 30 (rainy)
+    assert {g: groups[g]["count"] for g in ("day", "night", "rainy")} == {"day": 2, "night": 1,
+                                                                           "rainy": 1}
+
+
+def test_the_tables_on_a_users_folder_dataset(synthetic_data, quick_cache, tmp_path):
+    """--data FOLDER: trained on its train split, evaluated on its own test split."""
+    script = load_script("table2_multitask_reconstruction")
+    record = script.main(script.TABLE, ["--quick", "--data", str(synthetic_data), "--cache",
+                                        quick_cache, "--out", str(tmp_path), "--no-progress"])
+    assert record["synthetic"] is False and record["data"]["format"] == "folder"
+    assert record["protocol"] == {"name": "folder", "stride": 1, "align": None}
+    assert record["eval_data"]["path"] == str(synthetic_data)
+    test_frames = sum(r["split"] == "test" for r in
+                      json.loads((synthetic_data / "manifest.json").read_text())["frames"])
+    assert all(r["per_seed"]["0"]["count"] == test_frames for r in record["rows"])
+    assert "SYNTHETIC" not in (tmp_path / "results.md").read_text()
+
+
+def test_table4_controls(quick_results):
+    """Table 4's blank-image control is its own run; the median-scaled rows re-read the IR /
+    RGB runs (same run, other alignment)."""
+    record = quick_results["table4_illumination"][0]
+    blank = _row(record, "blank (control)", "day")["per_seed"]["0"]
+    ir, ir_median = (_row(record, s, "day")["per_seed"]["0"] for s in ("IR (HSV)", "IR (HSV), median-scaled"))
+    assert blank["run"] != ir["run"] and ir_median["run"] == ir["run"]
+    assert ir_median["count"] == ir["count"] and ir_median["d1"] != ir["d1"]
 
 
 def test_pipeline_figure_quick(quick_results, quick_cache, tmp_path):

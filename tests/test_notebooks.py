@@ -11,7 +11,6 @@ import os
 import nbformat
 import pytest
 from nbclient import NotebookClient
-from test_experiments import load_runner
 from trained_runs import copy_run
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -67,11 +66,12 @@ def test_ablations_runs(monkeypatch, tmp_path):
     results = os.path.join(REPO, "experiments", "results")
     monkeypatch.setenv("IRDEPTH_RESULTS_DIR", results)
     nb = execute("ablations.ipynb", tmp_path)
-    runner = load_runner()
-    records = runner.load_results(results)
+    from experiments import claims
+
+    records = claims.load_results(results)
     assert len(records) == 7
     assert images(nb) == len(records)
     out = text(nb)
     for record in records.values():
         assert record["title"] in out
-    assert out.count("seeds agree") == len(runner.check_claims(records))
+    assert out.count("seeds agree") == len(claims.check_claims(records))
