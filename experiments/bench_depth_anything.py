@@ -15,7 +15,6 @@ import dataclasses
 import json
 import os
 import statistics
-import sys
 import tempfile
 import time
 
@@ -25,8 +24,6 @@ import numpy as np
 
 from irdepth_jax.models.depth_anything import DepthAnythingV2, depth_anything_config
 from irdepth_jax.weights import load_depth_anything
-
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
 
 
 def _time(fn, warmup: int, repeats: int) -> list[float]:
@@ -66,7 +63,8 @@ def main(argv=None) -> dict:
         params = jax.jit(DepthAnythingV2(cfg).init)(jax.random.key(0, impl="rbg"), jnp.asarray(x[:1]))["params"]
     else:
         import torch
-        from torch_reference import random_hf_model
+
+        from experiments.torch_reference import random_hf_model
 
         torch.set_num_threads(args.threads)
         model = random_hf_model(cfg)

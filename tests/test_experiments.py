@@ -115,6 +115,21 @@ def test_quick_outputs(quick_results, name):
     assert img[..., :3].std() > 0.05  # not a blank canvas
 
 
+def test_quick_results_match_the_committed_ones(quick_results):
+    """Regeneration check: every --quick table reproduces the numbers stored in
+    tests/data/quick_results.json (a change of behaviour anywhere from the renderer to the
+    metrics moves them; float32 reductions on another CPU may move them by ~1e-6)."""
+    with open(os.path.join(REPO, "tests", "data", "quick_results.json")) as f:
+        stored = json.load(f)["tables"]
+    assert sorted(stored) == sorted(TABLES)
+    for name, (record, _) in quick_results.items():
+        got = {row["label"]: {c: row["per_seed"]["0"][c] for c in record["columns"]}
+               for row in record["rows"]}
+        assert got.keys() == stored[name].keys(), name
+        for label, values in stored[name].items():
+            assert got[label] == pytest.approx(values, rel=1e-3, abs=1e-4), (name, label)
+
+
 def _row(record, series, group="all"):
     return next(r for r in record["rows"] if r["series"] == series and r["group"] == group)
 

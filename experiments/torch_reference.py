@@ -1,7 +1,9 @@
-"""PyTorch reference for the parity tests: transformers' DepthAnythingForDepthEstimation built from
-our config with random weights, its intermediate features, and its weights in the official layout.
+"""PyTorch reference for the parity tests and benchmarks: transformers'
+DepthAnythingForDepthEstimation built from our config with random weights, its intermediate
+features, and its weights in the official layout.
 
-Needs torch + transformers (the [parity] extra); import it only from tests marked `parity`.
+Needs torch + transformers (the [parity] extra); import it only from tests marked `parity` and
+from benchmarks.
 """
 
 from __future__ import annotations
