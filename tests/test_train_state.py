@@ -33,13 +33,13 @@ def batch():
 def test_label_params_by_path():
     params = {"enc0": {"conv0": {"kernel": 1}}, "dec_seg_up0": {"up": {"kernel": 2}},
               "head_seg": {"kernel": 3}, "dec_recon_up1": {"kernel": 4},
-              "head_gradient": {"bias": 5}, "segway": {"kernel": 6}}
+              "head_saturation": {"bias": 5}, "segway": {"kernel": 6}}
     from irdepth_jax.train.state import AUX_BRANCH_PATTERN, SEG_BRANCH_PATTERN
     labels = label_params(params, [(SEG_BRANCH_PATTERN, "seg"), (AUX_BRANCH_PATTERN, "aux")],
                           "shared")
     assert labels == {"enc0": {"conv0": {"kernel": "shared"}},
                       "dec_seg_up0": {"up": {"kernel": "seg"}}, "head_seg": {"kernel": "seg"},
-                      "dec_recon_up1": {"kernel": "aux"}, "head_gradient": {"bias": "aux"},
+                      "dec_recon_up1": {"kernel": "aux"}, "head_saturation": {"bias": "aux"},
                       "segway": {"kernel": "shared"}}
 
 
@@ -80,7 +80,7 @@ def test_stage1_i2_group_rates(unet_vars):
     tx, _ = stage1_optimizer(single, "stage1_i2")
     upd = _first_update(tx, unet_vars["params"])
     assert float(jnp.abs(upd["head_recon"]["kernel"]).max()) == 0.0
-    assert float(jnp.abs(upd["dec_gradient_up2"]["fuse"]["conv0"]["kernel"]).max()) == 0.0
+    assert float(jnp.abs(upd["dec_grad_up2"]["fuse"]["conv0"]["kernel"]).max()) == 0.0
     np.testing.assert_allclose(upd["head_seg"]["kernel"], -0.1, rtol=1e-4)
 
 

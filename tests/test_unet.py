@@ -101,7 +101,7 @@ def test_tiny_train_step_shapes_ranges_and_finite_grads(tiny):
     assert np.isfinite(loss)
     for path, g in traverse_util.flatten_dict(grads).items():
         assert np.isfinite(g).all(), path
-    for module in ("head_recon", "head_seg", "head_gradient", "enc0", "dec_seg_up0"):
+    for module in ("head_recon", "head_seg", "head_saturation", "enc0", "dec_seg_up0"):
         assert sum(float(jnp.abs(g).sum()) for g in jax.tree.leaves(grads[module])) > 0, module
     # the input gradient is the GCM of the normalised raw frame
     np.testing.assert_allclose(
@@ -170,9 +170,9 @@ def test_paper_preset_channel_widths():
         "bottleneck/conv1": (3, 3, 512, 512),
         "head_recon": (1, 1, 32, 1),
         "head_seg": (1, 1, 32, 6),
-        "head_gradient": (1, 1, 32, 1),
+        "head_saturation": (1, 1, 32, 1),
     }
-    for task in ("recon", "seg", "gradient"):
+    for task in ("recon", "seg", "grad"):
         expected[f"dec_{task}_up3/up"] = (2, 2, 512, 256)
         expected[f"dec_{task}_up3/fuse/conv0"] = (3, 3, 512, 256)
         expected[f"dec_{task}_up0/up"] = (2, 2, 64, 32)
@@ -193,7 +193,7 @@ def test_rgg_switch_changes_param_tree_and_output(tiny):
     tree_rgg, tree_plain = param_tree(model), param_tree(plain)
     rgg_keys = set(tree_rgg) - set(tree_plain)
     assert set(tree_plain) < set(tree_rgg)
-    blocks = {f"dec_{t}_up{i}" for t in ("recon", "seg", "gradient") for i in range(4)}
+    blocks = {f"dec_{t}_up{i}" for t in ("recon", "seg", "grad") for i in range(4)}
     assert {k[0] for k in rgg_keys} == blocks
     assert all(k[1] == "rgg" for k in rgg_keys)
 

@@ -25,12 +25,15 @@ from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
 """Decoder branches: reconstruction (-> Value), segmentation (-> Hue), gradient (the radiation-
-gradient structure map -> Saturation). Each has decoder blocks ``dec_<task>_up<i>`` and a head
-``head_<task>``."""
+gradient structure map -> Saturation)."""
 
-LEGACY_MODULE_NAMES = (("dec_grad_up{i}", "dec_gradient_up{i}"), ("head_saturation", "head_gradient"))
-"""(old, new) module names of the gradient branch: checkpoints written before it had one name
-hold the old ones (``{i}``: any decoder stage), renamed when they are restored."""
+MODULE_NAMES = {"recon": ("dec_recon", "head_recon"), "seg": ("dec_seg", "head_seg"),
+                "gradient": ("dec_grad", "head_saturation")}
+"""Parameter-tree names of each branch's decoder blocks (``<decoder>_up<i>``) and head. The
+gradient branch keeps the names it has always been trained under: Flax draws every module's
+initial weights from an RNG derived from the module's name, so renaming its modules would
+change every newly trained model (and the committed experiment results) with no change in
+behaviour."""
 
 
 def max_pool_2x2(x):
@@ -137,8 +140,8 @@ class MTSAUNet(nn.Module):
         pmap / shard_map); None for a single device.
 
     Parameter tree (what optimizer partitions match on): ``enc0..enc{n-1}``, ``bottleneck``,
-    ``dec_{recon,seg,gradient}_up{i}`` (children ``up``, ``up_bn``, ``fuse``, and ``rgg`` when
-    cfg.use_rgg), ``head_recon``, ``head_seg``, ``head_gradient``.
+    ``dec_{recon,seg,grad}_up{i}`` (children ``up``, ``up_bn``, ``fuse``, and ``rgg`` when
+    cfg.use_rgg), ``head_recon``, ``head_seg``, ``head_saturation`` (`MODULE_NAMES`).
     """
 
     cfg: UNetConfig
@@ -212,13 +215,16 @@ class MTSAUNet(nn.Module):
                     cfg.rgg_alpha,
                     cfg.bn_momentum,
                     self.axis_name,
-                    name=f"dec_{task}_up{i}",
+                    name=f"{MODULE_NAMES[task][0]}_up{i}",
                 )(d, skips[i], guides[i], train)
             features[task] = d[:, :height, :width]
 
+        def head(task: str, channels: int):
+            return nn.Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
+
         return {
-            "recon": nn.sigmoid(nn.Conv(1, (1, 1), name="head_recon")(features["recon"])),
-            "seg_logits": nn.Conv(cfg.num_classes, (1, 1), name="head_seg")(features["seg"]),
-            "saturation": nn.sigmoid(nn.Conv(1, (1, 1), name="head_gradient")(features["gradient"])),
+            "recon": nn.sigmoid(head("recon", 1)),
+            "seg_logits": head("seg", cfg.num_classes),
+            "saturation": nn.sigmoid(head("gradient", 1)),
             "input_gradient": gcm[:, :height, :width],
         }

@@ -7,11 +7,9 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from irdepth_jax.models.unet import LEGACY_MODULE_NAMES
 from irdepth_jax.train.state import LEGACY_GROUP_NAMES
 
 LEGACY_KEYS: tuple[tuple[str, str, str | None], ...] = (
-    *((old, new, None) for old, new in LEGACY_MODULE_NAMES),
     *((old, new, "inner_states") for old, new in LEGACY_GROUP_NAMES),
 )
 """(old, new, parent) key names of checkpoints written before a rename: a key of any item's tree

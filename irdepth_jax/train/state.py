@@ -39,7 +39,7 @@ STAGES = ("stage1_i1", "stage1_i2", "stage2")
 # (decoders dec_<task>_up<i>, heads head_<task>) and `models.depth_anything.DepthAnythingV2`
 # (backbone "pretrained", head "depth_head").
 SEG_BRANCH_PATTERN = r"^(dec_seg_|head_seg(/|$))"
-AUX_BRANCH_PATTERN = r"^(dec_(recon|gradient)_|head_(recon|gradient)(/|$))"
+AUX_BRANCH_PATTERN = r"^(dec_(recon|grad)_|head_(recon|saturation)(/|$))"
 BACKBONE_PATTERN = r"^pretrained(/|$)"
 
 NO_UPDATE = "no_update"
