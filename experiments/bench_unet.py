@@ -3,7 +3,7 @@ batch: forward and train-step wall time, the GFLOP/s they reach (XLA's FLOP coun
 of the machine's measured matmul peak, and jit compile times (init, forward, train step).
 
     python experiments/bench_unet.py --preset paper --sizes 256x320 512x640 --batch 1 4 \\
-        --repeats 10 --threads 2 --json experiments/results/bench_unet.json
+        --repeats 5 --threads 2 --json experiments/results/bench_unet.json
 
 Prints the matmul peak (a jitted float32 N x N matmul, N = --peak-size, and torch.mm of the
 same), then one row per (size, batch): ours ms, torch ms, ours / torch for the forward and the
@@ -23,7 +23,10 @@ Threads: --threads N (default: the CPUs this process may run on) gives both N in
 threads: torch.set_num_threads(N), and XLA's CPU thread pool through the PJRT_NPROC
 environment variable, which jaxlib reads when its CPU client starts (so it must be set before
 JAX's first computation; this script sets it first thing, and prints the size of the pool it
-got). --no-torch times ours only.
+got). OpenMP: torch's threads wait passively (OMP_WAIT_POLICY=PASSIVE, unless the environment
+sets it): with the default spinning, torch's calls interleaved with XLA's in one process were up
+to 50x slower (measured on a busy 2-core machine: a 256^2 matmul 0.3 ms alone, 15 ms between XLA
+calls; 0.4 ms passive). OMP_WAIT_POLICY=ACTIVE compares. --no-torch times ours only.
 """
 
 from __future__ import annotations
@@ -317,10 +320,12 @@ def main(argv=None) -> dict:
     with_torch = not args.no_torch
     versions = {"jax": jax.__version__}
     if with_torch:
+        # read when OpenMP starts (with torch's import); a torch imported earlier keeps its own
+        omp_policy = os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         import torch
 
         torch.set_num_threads(args.threads)
-        versions["torch"] = torch.__version__
+        versions.update(torch=torch.__version__, omp_wait_policy=omp_policy)
 
     cfg = get_config(args.preset).unet
     if args.no_rgg:
