@@ -16,7 +16,13 @@ from irdepth_jax.models.depth_anything import (
     resize_depth,
     target_size,
 )
-from irdepth_jax.models.dinov2 import _cubic_weights, cubic_resize_matrix, interpolate_pos_embed
+from irdepth_jax.models.dinov2 import (
+    _cubic_weights,
+    attend,
+    attention_implementation,
+    cubic_resize_matrix,
+    interpolate_pos_embed,
+)
 from irdepth_jax.weights import expected_shapes
 
 
@@ -115,6 +121,38 @@ def test_remat_same_outputs_and_gradients(tiny):
     for g, g_r in zip(jax.tree.leaves(grads), jax.tree.leaves(grads_r)):
         np.testing.assert_allclose(g_r, g, rtol=1e-5, atol=1e-7)
     assert float(jnp.abs(grads["pretrained"]["blocks_0"]["attn"]["qkv"]["kernel"]).max()) > 0
+
+
+def test_attention_kernel_by_backend():
+    """'auto' = einsums on CPU, cuDNN flash attention on GPU for bf16 / fp16, XLA's kernel on GPU
+    in float32 (cuDNN takes no float32); an explicit choice is kept; a wrong one is refused."""
+    assert attention_implementation("auto", "cpu", jnp.float32) == "einsum"
+    assert attention_implementation("auto", "cpu", jnp.bfloat16) == "einsum"
+    assert attention_implementation("auto", "gpu", jnp.bfloat16) == "cudnn"
+    assert attention_implementation("auto", "gpu", jnp.float16) == "cudnn"
+    assert attention_implementation("auto", "gpu", jnp.float32) == "xla"
+    assert attention_implementation("xla", "cpu", jnp.float32) == "xla"
+    with pytest.raises(ValueError, match="attention 'flash'"):
+        attention_implementation("flash", "cpu", jnp.float32)
+    with pytest.raises(ValueError, match="attention must be one of"):
+        depth_anything_config("tiny", attention="flash")
+
+
+def test_attention_kernels_agree(tiny):
+    """The einsums and jax.nn.dot_product_attention give the same attention, by hand-written
+    softmax(q k^T / sqrt(d)) v, and the same model output."""
+    q, k, v = jax.random.normal(jax.random.key(0), (3, 2, 7, 3, 8))
+    logits = np.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(8)
+    weights = np.exp(logits - logits.max(-1, keepdims=True))
+    expected = np.einsum("bhqk,bkhd->bqhd", weights / weights.sum(-1, keepdims=True), v)
+    for implementation in ("einsum", "xla"):
+        np.testing.assert_allclose(jax.jit(attend, static_argnums=3)(q, k, v, implementation),
+                                   expected, rtol=1e-5, atol=1e-6)
+    cfg, params = tiny
+    x = jax.random.normal(jax.random.key(3), (1, 28, 42, 3))
+    outputs = [jax.jit(DepthAnythingV2(depth_anything_config("tiny", attention=a)).apply)(
+        {"params": params}, x) for a in ("einsum", "xla")]
+    np.testing.assert_allclose(outputs[1], outputs[0], rtol=1e-5, atol=1e-6)
 
 
 def test_cubic_kernel_hand_values():

@@ -30,7 +30,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.models.dinov2 import POS_EMBED_MODES, DinoVisionTransformer, cubic_resize_matrix
+from irdepth_jax.models.dinov2 import ATTENTION, POS_EMBED_MODES, DinoVisionTransformer, cubic_resize_matrix
 from irdepth_jax.models.dpt import DPTHead, resize_bilinear_align_corners
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
@@ -47,7 +47,9 @@ class DepthAnythingConfig:
     head_hidden: width of the last 3x3 conv (32 in every released model);
     metric: sigmoid * max_depth output (metric models) instead of ReLU (relative models);
     pos_embed_mode: 'official' (released checkpoints) or 'transformers' (HF Dinov2 resampling);
-    dtype: compute dtype 'float32' | 'bfloat16' (params stay float32); remat: rematerialise blocks.
+    dtype: compute dtype 'float32' | 'bfloat16' (params stay float32); remat: rematerialise blocks;
+    attention: the attention kernel, `dinov2.ATTENTION` ('auto': cuDNN flash attention on GPU in
+    bfloat16, XLA's in float32 on GPU, einsums on CPU; same numbers within float tolerance).
     """
 
     encoder: str = "vits"
@@ -67,6 +69,7 @@ class DepthAnythingConfig:
     pos_embed_mode: str = "official"
     dtype: str = "float32"
     remat: bool = False
+    attention: str = "auto"
 
     def __post_init__(self):
         problems = []
@@ -82,6 +85,8 @@ class DepthAnythingConfig:
             problems.append(f"pos_embed_mode must be one of {POS_EMBED_MODES}, got {self.pos_embed_mode!r}")
         if self.dtype not in _DTYPES:
             problems.append(f"dtype must be one of {tuple(_DTYPES)}, got {self.dtype!r}")
+        if self.attention not in ATTENTION:
+            problems.append(f"attention must be one of {ATTENTION}, got {self.attention!r}")
         if self.image_size % self.patch_size:
             problems.append(f"image_size {self.image_size} is not a multiple of patch_size {self.patch_size}")
         if problems:
@@ -132,6 +137,7 @@ class DepthAnythingV2(nn.Module):
             pos_embed_mode=c.pos_embed_mode,
             dtype=dtype,
             remat=c.remat,
+            attention=c.attention,
         )
         self.depth_head = DPTHead(
             features=c.features,
