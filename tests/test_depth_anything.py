@@ -141,13 +141,14 @@ def test_attention_kernel_by_backend():
 def test_attention_kernels_agree(tiny):
     """The einsums and jax.nn.dot_product_attention give the same attention, by hand-written
     softmax(q k^T / sqrt(d)) v, and the same model output."""
-    q, k, v = jax.random.normal(jax.random.key(0), (3, 2, 7, 3, 8))
+    qkv = jax.random.normal(jax.random.key(0), (2, 7, 3 * 3 * 8))  # B, N, (q k v) x 3 heads x 8
+    q, k, v = np.moveaxis(np.asarray(qkv).reshape(2, 7, 3, 3, 8), 2, 0)
     logits = np.einsum("bqhd,bkhd->bhqk", q, k) / np.sqrt(8)
     weights = np.exp(logits - logits.max(-1, keepdims=True))
     expected = np.einsum("bhqk,bkhd->bqhd", weights / weights.sum(-1, keepdims=True), v)
     for implementation in ("einsum", "xla"):
-        np.testing.assert_allclose(jax.jit(attend, static_argnums=3)(q, k, v, implementation),
-                                   expected, rtol=1e-5, atol=1e-6)
+        got = jax.jit(attend, static_argnums=(1, 2))(qkv, 3, implementation)
+        np.testing.assert_allclose(got, expected.reshape(2, 7, 24), rtol=1e-5, atol=1e-6)
     cfg, params = tiny
     x = jax.random.normal(jax.random.key(3), (1, 28, 42, 3))
     outputs = [jax.jit(DepthAnythingV2(depth_anything_config("tiny", attention=a)).apply)(

@@ -128,15 +128,29 @@ def attention_implementation(choice: str, backend: str, dtype) -> str:
     return "einsum"
 
 
-def attend(q, k, v, implementation: str):
-    """Softmax attention of q, k, v (B, N, heads, head_dim) -> (B, N, heads, head_dim), scale
-    1/sqrt(head_dim), softmax in float32; `implementation` one of ATTENTION without 'auto'."""
+def attend(qkv, num_heads: int, implementation: str):
+    """Softmax attention, scale 1/sqrt(head_dim), softmax in float32.
+
+    Args:
+      qkv: (B, N, 3 * D) fused projections (official layout: q, k, v blocks of D = heads x
+        head_dim).
+      num_heads: heads.
+      implementation: one of ATTENTION without 'auto'.
+    Returns:
+      (B, N, D).
+    """
+    b, n, _ = qkv.shape
+    head_dim = qkv.shape[-1] // (3 * num_heads)
+    qkv = qkv.reshape(b, n, 3, num_heads, head_dim)
     if implementation in ("xla", "cudnn"):
-        return jax.nn.dot_product_attention(q, k, v, implementation=implementation)
-    q, k, v = (jnp.transpose(t, (0, 2, 1, 3)) for t in (q, k, v))
-    logits = jnp.einsum("bhqd,bhkd->bhqk", q * jnp.asarray(q.shape[-1] ** -0.5, q.dtype), k)
+        q, k, v = jnp.moveaxis(qkv, 2, 0)
+        out = jax.nn.dot_product_attention(q, k, v, implementation=implementation)
+        return out.reshape(b, n, num_heads * head_dim)
+    q, k, v = jnp.transpose(qkv, (2, 0, 3, 1, 4))  # (B, heads, N, head_dim) each
+    logits = jnp.einsum("bhqd,bhkd->bhqk", q * jnp.asarray(head_dim**-0.5, q.dtype), k)
     weights = jax.nn.softmax(logits.astype(jnp.float32), axis=-1).astype(v.dtype)
-    return jnp.transpose(jnp.einsum("bhqk,bhkd->bhqd", weights, v), (0, 2, 1, 3))
+    out = jnp.transpose(jnp.einsum("bhqk,bhkd->bhqd", weights, v), (0, 2, 1, 3))
+    return out.reshape(b, n, num_heads * head_dim)
 
 
 class Attention(nn.Module):
@@ -151,15 +165,10 @@ class Attention(nn.Module):
     @nn.compact
     def __call__(self, x):
         """x: (B, N, D) -> (B, N, D)."""
-        b, n, _ = x.shape
-        head_dim = self.dim // self.num_heads
         qkv = nn.Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
-        q, k, v = jnp.moveaxis(qkv.reshape(b, n, 3, self.num_heads, head_dim), 2, 0)
         implementation = attention_implementation(self.attention, jax.default_backend(), self.dtype)
-        out = attend(q, k, v, implementation)
-        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(
-            out.reshape(b, n, self.dim)
-        )
+        out = attend(qkv, self.num_heads, implementation)
+        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(out)
 
 
 class Mlp(nn.Module):
