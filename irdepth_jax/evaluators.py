@@ -97,6 +97,16 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
     """
     run = _Predictor(dp, "stage1", cfg, unet_vars)
     num_classes = cfg.unet.num_classes
+    cms, seg_conditions = [], []
+
+    def add_segmentation(batch, seg, n):
+        cms.extend(np.asarray(confusion_matrix(seg[i], batch["seg"][i], num_classes), np.int64)
+                   for i in range(n))
+        seg_conditions.extend(str(c) for c in batch["condition"][:n])
+
+    seg_dataset, seg_indices = seg_frames if seg_frames is not None else (None, [])
+    # the same frames (e.g. a fully labelled evaluation set): one forward pass serves both
+    same_frames = seg_dataset is dataset and np.array_equal(seg_indices, indices)
     recon_rows, conditions = [], []
     for batch, n in _eval_batches(dataset, indices, dp):
         out = run({"raw14": batch["raw14"]})
@@ -107,14 +117,11 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
         recon8 = np.clip(np.round(recon * 255.0), 0, 255).astype(np.uint8)
         recon_rows += [(p[i], s[i], float(entropy(recon8[i]))) for i in range(n)]
         conditions += [str(c) for c in batch["condition"][:n]]
-    cms, seg_conditions = [], []
-    seg_dataset, seg_indices = seg_frames if seg_frames is not None else (None, [])
-    if len(seg_indices):
+        if same_frames:
+            add_segmentation(batch, out["seg"], n)
+    if len(seg_indices) and not same_frames:
         for batch, n in _eval_batches(seg_dataset, seg_indices, dp):
-            seg = run({"raw14": batch["raw14"]})["seg"]
-            cms += [np.asarray(confusion_matrix(seg[i], batch["seg"][i], num_classes), np.int64)
-                    for i in range(n)]
-            seg_conditions += [str(c) for c in batch["condition"][:n]]
+            add_segmentation(batch, run({"raw14": batch["raw14"]})["seg"], n)
     values = np.asarray(recon_rows, np.float64).reshape(-1, 3)
     frames = {"psnr": values[:, 0], "ssim": values[:, 1], "entropy": values[:, 2],
               "condition": np.asarray(conditions, str),

@@ -18,9 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import queue
 import sys
-import threading
 from collections.abc import Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 
@@ -28,6 +26,7 @@ import numpy as np
 
 from irdepth_jax.config import Config
 from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
+from irdepth_jax.data.loader import prefetch
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_png
 
@@ -161,42 +160,6 @@ def _frames(files: Sequence[str], bits: int) -> Iterator[Frame]:
     for f in files:
         for name, raw in read_frames(f, bits):
             yield Frame(f, name, raw)
-
-
-def _read_ahead(frames: Iterator[Frame], size: int) -> Iterator[Frame]:
-    """`frames` decoded on a background thread, at most `size` ahead (errors re-raised here)."""
-    q: queue.Queue = queue.Queue(maxsize=max(size, 1))
-    done = object()
-    stop = threading.Event()
-
-    def offer(item) -> bool:
-        """Puts `item` unless the consumer has stopped (then the thread ends, never blocks)."""
-        while not stop.is_set():
-            try:
-                q.put(item, timeout=0.1)
-                return True
-            except queue.Full:
-                continue
-        return False
-
-    def work():
-        try:
-            for frame in frames:
-                if not offer(frame):
-                    return
-            offer(done)
-        except BaseException as err:  # noqa: BLE001 - re-raised on the consumer's thread
-            offer(err)
-
-    thread = threading.Thread(target=work, daemon=True, name="irdepth-read")
-    thread.start()
-    try:
-        while (item := q.get()) is not done:
-            if isinstance(item, BaseException):
-                raise item
-            yield item
-    finally:
-        stop.set()
 
 
 def batches(frames: Iterator[Frame], sizes: dict) -> Iterator[tuple[list[Frame], int]]:
@@ -347,7 +310,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                 bar.update(1)
 
             _Pipelined(predictor, emit).run(
-                batches(_read_ahead(_frames(files, bits), READ_AHEAD * batch_size), sizes))
+                batches(prefetch(_frames(files, bits), READ_AHEAD * batch_size, "irdepth-read"), sizes))
         writers.check()
     finally:
         writers.close()
@@ -399,7 +362,8 @@ def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
                            depth_png(images["depth"]))
         bar.update(1)
 
-    frames = _read_ahead(_frames(sequence.files, predictor.bits), READ_AHEAD * batch_size)
+    frames = prefetch(_frames(sequence.files, predictor.bits), READ_AHEAD * batch_size,
+                      "irdepth-read")
     try:
         _Pipelined(predictor, emit).run(batches(frames, sizes))
     except KeyboardInterrupt:

@@ -183,7 +183,7 @@ class Loader:
         with concurrent.futures.ThreadPoolExecutor(self.num_threads) as pool:
             source = self._batches(epoch, start, pool)
             if self.prefetch > 0:
-                source = _prefetch(source, self.prefetch)
+                source = prefetch(source, self.prefetch)
             try:
                 for batch in source:
                     self.index += 1
@@ -194,9 +194,10 @@ class Loader:
             self.epoch, self.index = epoch + 1, 0
 
 
-def _prefetch(source: Iterator[dict], depth: int) -> Iterator[dict]:
-    """Runs `source` in a daemon thread, `depth` items ahead; errors re-raise in the consumer."""
-    q: queue.Queue = queue.Queue(maxsize=depth)
+def prefetch(source: Iterator, depth: int, name: str = "loader-prefetch") -> Iterator:
+    """Runs `source` in a daemon thread `name`, at most `depth` items ahead; errors re-raise in
+    the consumer; the thread never blocks once the consumer has stopped."""
+    q: queue.Queue = queue.Queue(maxsize=max(depth, 1))
     stop = threading.Event()
     done = object()
 
@@ -218,7 +219,7 @@ def _prefetch(source: Iterator[dict], depth: int) -> Iterator[dict]:
         except BaseException as e:  # handed to the consumer
             put(e)
 
-    thread = threading.Thread(target=work, daemon=True, name="loader-prefetch")
+    thread = threading.Thread(target=work, daemon=True, name=name)
     thread.start()
     try:
         while True:
