@@ -37,13 +37,21 @@ import functools
 import json
 import os
 import platform
-import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
 
+from experiments.bench_common import (
+    compiled_with_seconds,
+    flops_of,
+    interleaved_medians,
+    matmul_peak,
+    set_threads,
+    usable_cpus,
+    xla_pool_threads,
+)
 from irdepth_jax.config import get_config
 from irdepth_jax.models.unet import MTSAUNet
 
@@ -58,36 +66,6 @@ def parse_size(text: str) -> tuple[int, int]:
         message = f"size must look like 256x320 (HxW), got {text!r}"
         raise argparse.ArgumentTypeError(message) from None
     return h, w
-
-
-def compiled_with_seconds(jitted, *args):
-    """(the compiled executable for `args`, seconds spent tracing + compiling it)."""
-    start = time.perf_counter()
-    compiled = jitted.lower(*args).compile()
-    return compiled, time.perf_counter() - start
-
-
-def flops_of(compiled) -> float:
-    """XLA's FLOP count of one call of a compiled executable (2 per multiply-add)."""
-    cost = compiled.cost_analysis()
-    if isinstance(cost, (list, tuple)):  # older jaxlibs: one dict per device program
-        cost = cost[0]
-    return float(cost["flops"])
-
-
-def interleaved_medians(fns, repeats: int, warmup: int = 1) -> list[float]:
-    """Median wall-clock seconds of each zero-argument callable (each blocks until done), over
-    `repeats` rounds that call them in turn (A, B, A, B, ...), after `warmup` rounds."""
-    for _ in range(warmup):
-        for fn in fns:
-            fn()
-    times = [[] for _ in fns]
-    for _ in range(repeats):
-        for fn, t in zip(fns, times):
-            start = time.perf_counter()
-            fn()
-            t.append(time.perf_counter() - start)
-    return [float(np.median(t)) for t in times]
 
 
 def stage1_loss(out, target, labels):
@@ -143,44 +121,6 @@ def make_torch_train_step(model, optimizer):
         return loss
 
     return step
-
-
-def xla_pool_threads() -> int | None:
-    """Threads of XLA's CPU intra-op pool in this process (Linux; None elsewhere), to check that
-    PJRT_NPROC took effect."""
-    try:
-        tasks = os.listdir("/proc/self/task")
-    except OSError:
-        return None
-    count = 0
-    for task in tasks:
-        try:
-            with open(f"/proc/self/task/{task}/comm") as f:
-                count += f.read().startswith("tf_XLAEigen")
-        except OSError:
-            pass
-    return count
-
-
-def matmul_peak(n: int, repeats: int, warmup: int, with_torch: bool) -> dict:
-    """GFLOP/s of a float32 n x n matmul: jitted in XLA and, if asked, torch.mm (medians)."""
-    rng = np.random.default_rng(0)
-    a = rng.standard_normal((n, n), dtype=np.float32)
-    b = rng.standard_normal((n, n), dtype=np.float32)
-    xa, xb = jnp.asarray(a), jnp.asarray(b)
-    mm = jax.jit(jnp.matmul).lower(xa, xb).compile()
-    fns = [lambda: mm(xa, xb).block_until_ready()]
-    if with_torch:
-        import torch
-
-        ta, tb = torch.from_numpy(a), torch.from_numpy(b)
-        fns.append(lambda: torch.mm(ta, tb))
-    seconds = interleaved_medians(fns, repeats, warmup)
-    flops = 2.0 * n**3
-    result = {"size": n, "xla_gflops": flops / seconds[0] / 1e9}
-    if with_torch:
-        result["torch_gflops"] = flops / seconds[1] / 1e9
-    return result
 
 
 def bench_case(model, size, batch: int, repeats: int, warmup: int, with_torch: bool) -> dict:
@@ -284,12 +224,6 @@ def print_tables(results: list[dict], peak: float) -> None:
         print()
 
 
-def _usable_cpus() -> int:
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0))
-    return os.cpu_count() or 1
-
-
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
@@ -302,7 +236,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=5, help="timed calls per measurement")
     parser.add_argument("--warmup", type=int, default=2, help="untimed calls before them")
     parser.add_argument(
-        "--threads", type=int, default=_usable_cpus(),
+        "--threads", type=int, default=usable_cpus(),
         help="intra-op threads of torch and XLA (default: the CPUs this process may use)",
     )
     parser.add_argument("--peak-size", type=int, default=2048, help="N of the N x N peak matmul")
@@ -311,21 +245,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
     args = parser.parse_args(argv)
 
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized() and os.environ.get("PJRT_NPROC") != str(args.threads):
-        print(f"warning: JAX already started; XLA keeps its thread pool, --threads {args.threads} "
-              "applies to torch only")
-    os.environ["PJRT_NPROC"] = str(args.threads)  # read by XLA's CPU client when it starts
     with_torch = not args.no_torch
-    versions = {"jax": jax.__version__}
-    if with_torch:
-        # read when OpenMP starts (with torch's import); a torch imported earlier keeps its own
-        omp_policy = os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-        import torch
-
-        torch.set_num_threads(args.threads)
-        versions.update(torch=torch.__version__, omp_wait_policy=omp_policy)
+    versions = set_threads(args.threads, with_torch)
 
     cfg = get_config(args.preset).unet
     if args.no_rgg:

@@ -58,13 +58,12 @@ def test_two_process_shards_are_disjoint_and_cover_the_epoch():
             assert len(seen[0]) == len(seen[1]) == 9
         else:
             assert sorted(np.concatenate(seen)) == list(idx)
-    # the union of both shards is exactly the epoch's order, interleaved
-    a = Loader(Toy(), idx, 10, seed=5, process_index=0, process_count=2)
-    b = Loader(Toy(), idx, 10, seed=5, process_index=1, process_count=2)
-    one = Loader(Toy(), idx, 20, seed=5, process_index=0, process_count=1)
-    order = one.epoch_shard(0)[0]
-    np.testing.assert_array_equal(a.epoch_shard(0)[0], order[0::2])
-    np.testing.assert_array_equal(b.epoch_shard(0)[0], order[1::2])
+    # each global batch of 2 x 3 is the one-process batch of 6: process p holds its p-th block
+    a = Loader(Toy(), idx, 3, seed=5, process_index=0, process_count=2)
+    b = Loader(Toy(), idx, 3, seed=5, process_index=1, process_count=2)
+    one = Loader(Toy(), idx, 6, seed=5, process_index=0, process_count=1)
+    for mine, theirs, global_batch in zip(a, b, one):
+        np.testing.assert_array_equal(np.r_[mine["index"], theirs["index"]], global_batch["index"])
 
 
 def test_padding_with_mask_for_evaluation():

@@ -12,13 +12,14 @@ trains num_epochs epochs, and after `loader.set_state(saved)` the same loop cont
 exact batch the saved run would have produced next.
 
 Order: epoch e visits `indices` in the permutation `default_rng((seed, e)).permutation`
-(or in the given order with shuffle=False). The epoch's list is cut to a multiple of
-process_count (drop_remainder=True) or padded to one (drop_remainder=False), and process p takes
-every process_count-th element starting at p: the shards are disjoint and together cover the
-epoch. Each process then cuts its shard into batches of `batch_size` (the per-process batch).
-With drop_remainder=False the last batch is padded with copies of the shard's first sample and
-the batch's `mask` marks the real ones, so every batch has the same shapes and each example of the
-epoch is seen exactly once with mask True.
+(or in the given order with shuffle=False). The epoch's list is read as global batches
+of `batch_size` x process_count examples, and process p takes the p-th block of `batch_size` of
+each: the rows that one process holding every device would place on process p's devices, so a
+multi-host run trains on the same device batches (and BatchNorm groups) as one process with the
+same devices. drop_remainder=True drops the examples past the last full global batch;
+drop_remainder=False pads the last global batch with copies of the epoch's first example and the
+batch's `mask` marks the real ones, so every batch has the same shapes and each example of the
+epoch is seen exactly once with mask True. The shards are disjoint and together cover the epoch.
 
 Augmentation (augment=True) draws from `default_rng((seed, epoch, index))`, index being the
 dataset index of the sample: the same sample gets the same augmentation in the same epoch
@@ -144,19 +145,18 @@ class Loader:
         order = self.indices
         if self.shuffle:
             order = np.random.default_rng((self.seed, epoch)).permutation(order)
-        n, p = len(order), self.process_count
+        n, p, b = len(order), self.process_count, self.batch_size
+        total = self.batches_per_epoch * b  # this process's share
         mask = np.ones(n, bool)
-        if self.drop_remainder:
-            order, mask = order[: n // p * p], mask[: n // p * p]
-        else:
-            pad = -n % p
-            order, mask = np.concatenate([order, order[:pad]]), np.r_[mask, np.zeros(pad, bool)]
-        shard, shard_mask = order[self.process_index::p], mask[self.process_index::p]
-        total = self.batches_per_epoch * self.batch_size
-        if len(shard) < total:  # pad the last batch
-            pad = total - len(shard)
-            shard = np.concatenate([shard, np.repeat(shard[:1], pad)])
-            shard_mask = np.r_[shard_mask, np.zeros(pad, bool)]
+        if n < total * p:  # pad the last global batch (drop_remainder=False) ...
+            pad = total * p - n
+            order = np.concatenate([order, np.repeat(order[:1], pad)])
+            mask = np.r_[mask, np.zeros(pad, bool)]
+        # ... or drop the examples past the last full one; then each global batch of b * p
+        # examples gives process i its i-th block of b (the rows one process with all the
+        # devices would place on them)
+        rows = np.arange(total * p).reshape(self.batches_per_epoch, p, b)[:, self.process_index]
+        shard, shard_mask = order[rows.ravel()], mask[rows.ravel()]
         return shard[:total], shard_mask[:total]
 
     def _load(self, epoch: int, index: int) -> dict:

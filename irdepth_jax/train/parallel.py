@@ -99,6 +99,12 @@ class DataParallel:
         """Devices of this process in the mesh."""
         return sum(d.process_index == jax.process_index() for d in self.devices)
 
+    def describe(self) -> str:
+        """One line for the run log, e.g. 'shard_map over 4 devices (2 processes x 2)'."""
+        processes = len({d.process_index for d in self.devices})
+        where = f" ({processes} processes x {self.local_devices})" if processes > 1 else ""
+        return f"{self.mode} over {self.num_devices} device{'s' * (self.num_devices > 1)}{where}"
+
     # ---------------------------------------------------------------- placement
     def replicate(self, tree: Any) -> Any:
         """Puts a host (or single-device) tree where the steps expect replicated values."""

@@ -82,7 +82,7 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     prepare_workdir(opts.workdir, cfg, opts.resume)
     log = RunLog(opts.workdir)
     try:
-        log.info("stage1", raw_bits=cfg.data.raw_bits,
+        log.info("stage1", parallel=dp.describe(), raw_bits=cfg.data.raw_bits,
                  i1_frames=f"{len(frames['stage1_i1'][1])} ({s1.i1_frames})",
                  segmentation_labels=seg_info)
         val = source.frames("val", optional=True)
@@ -198,7 +198,7 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     prepare_workdir(opts.workdir, cfg, opts.resume)
     log = RunLog(opts.workdir)
     try:
-        log.info("stage2", raw_bits=cfg.data.raw_bits)
+        log.info("stage2", parallel=dp.describe(), raw_bits=cfg.data.raw_bits)
         log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
                  hue_mode=s2.hue_mode, sky_loss=(f"on, reference depth {ref_depth:.2f} m"
                                                  if s2.sky_loss else "off"))
