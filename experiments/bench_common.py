@@ -58,12 +58,13 @@ def xla_pool_threads() -> int | None:
     return count
 
 
-def matmul_peak(n: int, repeats: int, warmup: int, with_torch: bool) -> dict:
-    """GFLOP/s of a float32 n x n matmul: jitted in XLA and, if asked, torch.mm (medians)."""
+def matmul_peak(n: int, repeats: int, warmup: int, with_torch: bool, dtype: str = "float32") -> dict:
+    """GFLOP/s of an n x n matmul in `dtype` on JAX's default device, jitted, and, if asked,
+    torch.mm of the float32 arrays on the CPU (medians)."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((n, n), dtype=np.float32)
     b = rng.standard_normal((n, n), dtype=np.float32)
-    xa, xb = jnp.asarray(a), jnp.asarray(b)
+    xa, xb = jnp.asarray(a, dtype), jnp.asarray(b, dtype)
     mm = jax.jit(jnp.matmul).lower(xa, xb).compile()
     fns = [lambda: mm(xa, xb).block_until_ready()]
     if with_torch:
@@ -73,7 +74,7 @@ def matmul_peak(n: int, repeats: int, warmup: int, with_torch: bool) -> dict:
         fns.append(lambda: torch.mm(ta, tb))
     seconds = interleaved_medians(fns, repeats, warmup)
     flops = 2.0 * n**3
-    result = {"size": n, "xla_gflops": flops / seconds[0] / 1e9}
+    result = {"size": n, "dtype": dtype, "xla_gflops": flops / seconds[0] / 1e9}
     if with_torch:
         result["torch_gflops"] = flops / seconds[1] / 1e9
     return result

@@ -20,7 +20,8 @@ code and the transformers one against transformers, so every pair computes the s
 two sides interleaved (A, B, A, B); the train step is forward in train mode, the SiLog loss on
 random depth in [1, max_depth), backward and an AdamW update (lr 5e-6, weight decay 0.01) in
 both. Prints one row per (reference, size) with ours ms, theirs ms and ours / theirs, XLA's
-FLOP count as GFLOP/s and % of the measured float32 matmul peak.
+FLOP count as GFLOP/s and % of the measured matmul peak (an N x N matmul in --dtype on the
+same device: on a GPU, the fraction is the step's MFU against what the chip's matmul reaches).
 
 GPU: the same command on a CUDA machine, with --dtype bfloat16 (our compute dtype; params stay
 float32) and --amp (torch autocast bf16 on the official side); see README "Benchmarks".
@@ -93,9 +94,18 @@ def make_train_step(model: DepthAnythingV2, tx):
     return step
 
 
+def silog_loss_torch(pred, depth, valid, lambd: float = 0.5):
+    """SiLogLoss of the official metric_depth/util/loss.py, written out (that module sits in
+    the training script's package): sqrt(mean(d^2) - lambd * mean(d)^2), d = log depth - log pred
+    over the valid pixels."""
+    import torch
+
+    d = torch.log(depth[valid]) - torch.log(pred[valid])
+    return torch.sqrt((d**2).mean() - lambd * d.mean() ** 2)
+
+
 def torch_train_step(model, amp: bool):
-    """The official side: SiLogLoss of metric_depth/util/loss.py (written out: the module is
-    not importable without its training script's dependencies), torch.optim.AdamW."""
+    """The official side: `silog_loss_torch`, torch.optim.AdamW."""
     import torch
 
     optimizer = torch.optim.AdamW(model.parameters(), lr=ADAMW["learning_rate"],
@@ -107,8 +117,7 @@ def torch_train_step(model, amp: bool):
         optimizer.zero_grad(set_to_none=True)
         with torch.autocast(device_type, dtype=torch.bfloat16, enabled=amp):
             pred = model(images)
-        d = torch.log(depth[valid]) - torch.log(pred.float()[valid])
-        loss = torch.sqrt((d**2).mean() - 0.5 * d.mean() ** 2)
+        loss = silog_loss_torch(pred.float(), depth, valid)
         loss.backward()
         optimizer.step()
         if device_type == "cuda":
@@ -121,9 +130,10 @@ def torch_train_step(model, amp: bool):
 def bench_pair(name, ours, theirs, flops, repeats, warmup, batch) -> dict:
     seconds = interleaved_medians([ours, theirs] if theirs else [ours], repeats, warmup)
     row = {"reference": name, "batch": batch, "ours_ms": 1e3 * seconds[0],
-           "ours_gflops": flops / seconds[0] / 1e9}
+           "ours_images_per_s": batch / seconds[0], "ours_gflops": flops / seconds[0] / 1e9}
     if theirs:
-        row.update(theirs_ms=1e3 * seconds[1], ours_over_theirs=seconds[0] / seconds[1])
+        row.update(theirs_ms=1e3 * seconds[1], theirs_images_per_s=batch / seconds[1],
+                   ours_over_theirs=seconds[0] / seconds[1])
     return row
 
 
@@ -158,9 +168,9 @@ def main(argv=None) -> dict:
                "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
                **versions}
     print("Depth Anything V2: " + " ".join(f"{k}={v}" for k, v in summary.items()))
-    peak = matmul_peak(2048, args.repeats, args.warmup, with_torch) if device.platform == "cpu" else None
-    if peak:
-        print(f"matmul peak, float32 2048^2: XLA {peak['xla_gflops']:.1f} GFLOP/s")
+    on_cpu = device.platform == "cpu"
+    peak = matmul_peak(2048 if on_cpu else 8192, args.repeats, args.warmup, False, args.dtype)
+    print(f"matmul peak, {args.dtype} {peak['size']}^2: XLA {peak['xla_gflops']:.1f} GFLOP/s")
 
     references, params = {}, None
     if with_torch:
@@ -239,12 +249,12 @@ def main(argv=None) -> dict:
     print(f"{'kind':>10} | {'reference':>12} | {'size':>9} | batch | ours ms | theirs ms | ours/theirs "
           f"| GFLOP/s | % peak | compile s | max diff")
     for r in rows:
-        pct = 100 * r["ours_gflops"] / peak["xla_gflops"] if peak else None
+        pct = 100 * r["ours_gflops"] / peak["xla_gflops"]
         r["peak_pct"] = pct
         cells = [f"{r['kind']:>10}", f"{r['reference']:>12}", f"{r['size'][0]:>4}x{r['size'][1]:<4}",
                  f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}",
                  f"{r.get('theirs_ms', float('nan')):>9.1f}", f"{r.get('ours_over_theirs', float('nan')):>11.2f}",
-                 f"{r['ours_gflops']:>7.1f}", f"{pct if pct is not None else float('nan'):>6.0f}",
+                 f"{r['ours_gflops']:>7.1f}", f"{pct:>6.0f}",
                  f"{r['compile_s']:>9.1f}", f"{r.get('max_diff_over_max') or float('nan'):>8.1e}"]
         print(" | ".join(cells))
     summary.update(matmul_peak=peak, results=rows)

@@ -1,0 +1,34 @@
+"""The benchmarks' own pieces: the Stage II loss both sides time is the same function, and the
+host-side benchmark runs (tiny sizes; the figures come from experiments/, not from tests)."""
+
+import numpy as np
+import pytest
+
+from irdepth_jax.losses import silog_loss
+
+
+def test_the_official_side_times_our_silog_loss():
+    torch = pytest.importorskip("torch", reason="the PyTorch side needs torch (the [torch] extra)")
+    from experiments.bench_depth_anything import silog_loss_torch
+
+    rng = np.random.default_rng(0)
+    pred, depth = rng.uniform(0.5, 80, (2, 2, 14, 28)).astype(np.float32)
+    valid = rng.random((2, 14, 28)) < 0.7
+    theirs = silog_loss_torch(*(torch.from_numpy(a) for a in (pred, depth, valid))).item()
+    d = np.log(depth[valid].astype(np.float64)) - np.log(pred[valid])
+    by_hand = np.sqrt(np.mean(d**2) - 0.5 * np.mean(d) ** 2)
+    np.testing.assert_allclose(theirs, by_hand, rtol=1e-5)
+    np.testing.assert_allclose(float(silog_loss(pred, depth, valid)), by_hand, rtol=1e-5)
+
+
+def test_loader_benchmark_reports_the_three_rates(tmp_path):
+    from experiments.bench_loader import main
+
+    out = tmp_path / "loader.json"
+    result = main(["--preset", "tiny", "--size", "32x48", "--frames", "16", "--steps", "2",
+                   "--repeats", "1", "--json", str(out)])
+    for key in ("step_alone_img_per_s", "loader_alone_img_per_s", "training_img_per_s"):
+        assert result[key] > 0, key
+    assert result["batch"] == 4 and out.exists()
+    assert result["training_over_step_alone"] == pytest.approx(
+        result["training_img_per_s"] / result["step_alone_img_per_s"])
