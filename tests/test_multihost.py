@@ -110,6 +110,7 @@ def _cli_processes(argvs, devices_per_process: int, tmp_path):
     return logs
 
 
+@pytest.mark.slow  # ~3.5 min on 2 cores (three processes compile both Stage I phases cold)
 @pytest.mark.multidevice
 def test_cli_train_on_two_processes_equals_one_process_with_two_devices(synthetic_data, tmp_path):
     """README's cluster command on localhost: `irdepth train --coordinator ... --num-processes 2
