@@ -3,6 +3,7 @@ thread set-up for XLA and torch, and a measured matmul peak."""
 
 from __future__ import annotations
 
+import json
 import os
 import time
 
@@ -107,3 +108,10 @@ def set_threads(threads: int, with_torch: bool) -> dict:
         torch.set_num_threads(threads)
         versions.update(torch=torch.__version__, omp_wait_policy=omp_policy)
     return versions
+
+
+def write_json(path: str | None, figures: dict) -> None:
+    """Writes a benchmark's figures to `path` (--json FILE), if given."""
+    if path:
+        with open(path, "w") as f:
+            json.dump(figures, f, indent=1)

@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import importlib.util
-import json
 import os
 import platform
 import sys
@@ -51,6 +50,7 @@ from experiments.bench_common import (
     matmul_peak,
     set_threads,
     usable_cpus,
+    write_json,
 )
 from experiments.bench_unet import parse_size
 from irdepth_jax.losses import silog_loss
@@ -215,9 +215,8 @@ def main(argv=None) -> dict:
                     return out
 
                 ref = theirs().float().cpu().numpy().reshape(args.batch, h, w)
-                diff = float(np.abs(np.asarray(ours_out := forward({"params": params}, images))
-                                    - ref).max() / np.abs(ref).max())
-                del ours_out
+                out = np.asarray(forward({"params": params}, images))
+                diff = float(np.abs(out - ref).max() / np.abs(ref).max())
             row = bench_pair(ref_name, ours, theirs, flops_of(forward), args.repeats, args.warmup,
                              args.batch)
             row.update(kind="forward", size=[h, w], compile_s=compile_s, max_diff_over_max=diff)
@@ -255,12 +254,12 @@ def main(argv=None) -> dict:
                  f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}",
                  f"{r.get('theirs_ms', float('nan')):>9.1f}", f"{r.get('ours_over_theirs', float('nan')):>11.2f}",
                  f"{r['ours_gflops']:>7.1f}", f"{pct:>6.0f}",
-                 f"{r['compile_s']:>9.1f}", f"{r.get('max_diff_over_max') or float('nan'):>8.1e}"]
+                 f"{r['compile_s']:>9.1f}"]
+        diff = r.get("max_diff_over_max")  # None: nothing to compare (train step, --no-torch)
+        cells.append(f"{'-':>8}" if diff is None else f"{diff:>8.1e}")
         print(" | ".join(cells))
     summary.update(matmul_peak=peak, results=rows)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(summary, f, indent=1)
+    write_json(args.json, summary)
     return summary
 
 

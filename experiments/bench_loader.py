@@ -24,7 +24,7 @@ import time
 
 import jax
 
-from experiments.bench_common import interleaved_medians, set_threads, usable_cpus
+from experiments.bench_common import interleaved_medians, set_threads, usable_cpus, write_json
 from experiments.bench_unet import parse_size
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import BatchStream, DataSource, device_batch, make_loader, phase_frames
@@ -95,9 +95,7 @@ def main(argv=None) -> dict:
               "training_img_per_s": images / seconds[2],
               "training_over_step_alone": seconds[0] / seconds[2], "wall_s": wall}
     print(json.dumps(result, indent=1))
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=1)
+    write_json(args.json, result)
     return result
 
 

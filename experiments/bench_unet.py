@@ -34,7 +34,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import functools
-import json
 import os
 import platform
 
@@ -50,6 +49,7 @@ from experiments.bench_common import (
     matmul_peak,
     set_threads,
     usable_cpus,
+    write_json,
     xla_pool_threads,
 )
 from irdepth_jax.config import get_config
@@ -274,9 +274,7 @@ def main(argv=None) -> dict:
     ]
     print_tables(results, peak["xla_gflops"])
     summary.update(matmul_peak=peak, results=results)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(summary, f, indent=1)
+    write_json(args.json, summary)
     return summary
 
 
