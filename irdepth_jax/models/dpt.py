@@ -19,6 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from irdepth_jax.models.conv import Conv
+
 
 def resize_bilinear_align_corners(x: jax.Array, size: tuple[int, int]) -> jax.Array:
     """Bilinear resize with PyTorch's align_corners=True semantics (corner pixels map onto corners).
@@ -45,9 +47,9 @@ def _lerp_axis(x: jax.Array, axis: int, n_out: int) -> jax.Array:
     return (below + (above - below) * frac).astype(x.dtype)
 
 
-def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, stride: int = 1) -> nn.Conv:
+def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, stride: int = 1) -> Conv:
     pad = (kernel - 1) // 2
-    return nn.Conv(
+    return Conv(
         features,
         (kernel, kernel),
         strides=(stride, stride),

@@ -22,6 +22,7 @@ from __future__ import annotations
 import flax.linen as nn
 
 from irdepth_jax.imaging.gradients import gradient_magnitude
+from irdepth_jax.models.conv import Conv
 
 
 class RGG(nn.Module):
@@ -51,8 +52,8 @@ class RGG(nn.Module):
                 f"got {up.shape}, {skip.shape}, {input_grad.shape}"
             )
         channels = up.shape[-1]
-        feature_guidance = nn.Conv(channels, (1, 1), name="feature_proj")(gradient_magnitude(up))
-        input_guidance = nn.Conv(channels, (3, 3), name="input_proj")(input_grad)
+        feature_guidance = Conv(channels, (1, 1), name="feature_proj")(gradient_magnitude(up))
+        input_guidance = Conv(channels, (3, 3), name="input_proj")(input_grad)
         mixed = self.alpha * feature_guidance + (1.0 - self.alpha) * input_guidance
-        attention = nn.sigmoid(nn.Conv(channels, (1, 1), name="attention")(nn.relu(mixed)))
+        attention = nn.sigmoid(Conv(channels, (1, 1), name="attention")(nn.relu(mixed)))
         return up * (1.0 + attention), skip * (1.0 + attention)

@@ -21,6 +21,7 @@ import jax.numpy as jnp
 from irdepth_jax.config import UNetConfig
 from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
 from irdepth_jax.imaging.raw import normalize_raw
+from irdepth_jax.models.conv import Conv
 from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
@@ -91,7 +92,7 @@ class DoubleConv(nn.Module):
     @nn.compact
     def __call__(self, x, train: bool):
         for i in range(2):
-            x = nn.Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
+            x = Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
             x = nn.BatchNorm(
                 use_running_average=not train,
                 momentum=self.bn_momentum,
@@ -220,7 +221,7 @@ class MTSAUNet(nn.Module):
             features[task] = d[:, :height, :width]
 
         def head(task: str, channels: int):
-            return nn.Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
+            return Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
 
         return {
             "recon": nn.sigmoid(head("recon", 1)),
