@@ -1,15 +1,20 @@
 """Timing helpers the benchmarks share: compile timing, XLA's FLOP count, interleaved medians,
-thread set-up for XLA and torch, and a measured matmul peak."""
+thread set-up for XLA and torch, a measured matmul peak, and `Worker`: one side of a comparison
+in a process of its own."""
 
 from __future__ import annotations
 
 import json
+import multiprocessing
 import os
 import time
+import traceback
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from irdepth_jax.hostmem import keep_freed_memory
 
 
 def compiled_with_seconds(jitted, *args):
@@ -27,19 +32,137 @@ def flops_of(compiled) -> float:
     return float(cost["flops"])
 
 
-def interleaved_medians(fns, repeats: int, warmup: int = 1) -> list[float]:
-    """Median wall-clock seconds of each zero-argument callable (each blocks until done), over
-    `repeats` rounds that call them in turn (A, B, A, B, ...), after `warmup` rounds."""
+def wall_seconds(fn) -> float:
+    """Runs the zero-argument callable `fn` (which blocks until its work is done); its seconds."""
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def interleaved_medians(timers, repeats: int, warmup: int = 1) -> list[float]:
+    """Median seconds of each timer over `repeats` rounds that call them in turn (A, B, A, B,
+    ...), after `warmup` rounds. A timer is a zero-argument callable that runs one call and
+    returns its seconds (`functools.partial(wall_seconds, fn)`, `functools.partial(worker.time,
+    name)`)."""
     for _ in range(warmup):
-        for fn in fns:
-            fn()
-    times = [[] for _ in fns]
+        for timer in timers:
+            timer()
+    times = [[] for _ in timers]
     for _ in range(repeats):
-        for fn, t in zip(fns, times):
-            start = time.perf_counter()
-            fn()
-            t.append(time.perf_counter() - start)
+        for timer, t in zip(timers, times):
+            t.append(timer())
     return [float(np.median(t)) for t in times]
+
+
+class Worker:
+    """One side of a comparison (ours in JAX, or a PyTorch reference) in a process of its own.
+
+    The two sides of a benchmark used to share one process, interleaved call by call. Each then
+    ran among the other's threads, allocations and freed memory: measured on 2 cores, the
+    `paper` UNet train step at batch 4 took 9.7 s between torch's calls and 5.5 s alone (torch's
+    twin 7.7 s between ours, 6.7 s alone). In separate processes the calls are still
+    interleaved (A, B, A, B: a drift in the machine's load hits both alike), but only one
+    process computes at a time and neither sees the other's state.
+
+    `setup` is an importable function (the child is started with 'spawn'); it runs in the child
+    as ``setup(*args, **kwargs)`` with the thread settings in its environment, and returns ``(calls, info)``: a dict of
+    zero-argument callables (each blocks until its work is done and returns its result, numpy
+    or torch) and a dict of picklable facts (compile seconds, FLOPs, ...), `self.info`.
+    `threads`: XLA's intra-op pool (PJRT_NPROC) and torch's intra-op threads in the child.
+    `keep_memory`: the child keeps freed memory for reuse (`irdepth_jax.hostmem`), whichever
+    framework it runs, as the `irdepth` command does for ours; False leaves glibc's malloc as
+    it is (`info['keep_freed_memory']` says which).
+    """
+
+    def __init__(self, setup, *args, threads: int, keep_memory: bool = True, **kwargs):
+        context = multiprocessing.get_context("spawn")
+        self._conn, child = context.Pipe()
+        self._process = context.Process(target=_worker_main,
+                                        args=(child, setup, args, kwargs, keep_memory), daemon=True)
+        # The child inherits the environment when it starts, before it imports anything:
+        # PJRT_NPROC is read when JAX's CPU client starts, OMP_NUM_THREADS when torch's OpenMP
+        # runtime loads; OpenMP's threads wait passively (the other process computes meanwhile);
+        # on a GPU, JAX takes memory as it needs it instead of 75 % of it up front, so that the
+        # other side's process fits beside it.
+        settings = {"PJRT_NPROC": str(threads), "OMP_NUM_THREADS": str(threads),
+                    "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
+                    "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
+        saved = {k: os.environ.get(k) for k in settings}
+        os.environ.update(settings)
+        try:
+            self._process.start()
+        finally:
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k)
+                else:
+                    os.environ[k] = v
+        child.close()
+        self.info = self._answer()
+
+    def _answer(self):
+        try:
+            status, value = self._conn.recv()
+        except EOFError:
+            raise RuntimeError(f"benchmark worker {self._process.pid} died "
+                               f"(exit code {self._process.exitcode})") from None
+        if status == "error":
+            raise RuntimeError(f"benchmark worker failed:\n{value}")
+        return value
+
+    def time(self, name: str) -> float:
+        """Seconds of one call of `name`, measured in the child."""
+        self._conn.send(("time", name))
+        return self._answer()
+
+    def result(self, name: str):
+        """One call's result, as numpy arrays (a tree of them)."""
+        self._conn.send(("result", name))
+        return self._answer()
+
+    def close(self) -> None:
+        if self._process.is_alive():
+            self._conn.send(("close", None))
+            self._process.join(timeout=30)
+        self._conn.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+
+def _as_numpy(tree):
+    if isinstance(tree, dict):
+        return {k: _as_numpy(v) for k, v in tree.items()}
+    if isinstance(tree, (list, tuple)):
+        return type(tree)(_as_numpy(v) for v in tree)
+    if hasattr(tree, "detach"):  # a torch tensor
+        return tree.detach().float().cpu().numpy()
+    return np.asarray(tree)
+
+
+def _worker_main(conn, setup, args, kwargs, keep_memory: bool) -> None:
+    try:
+        kept = keep_memory and keep_freed_memory()
+        calls, info = setup(*args, **kwargs)
+        info = {**info, "keep_freed_memory": kept}
+        conn.send(("ok", info))
+    except BaseException:
+        conn.send(("error", traceback.format_exc()))
+        return
+    while True:
+        command, name = conn.recv()
+        if command == "close":
+            return
+        try:
+            if command == "time":
+                conn.send(("ok", wall_seconds(calls[name])))
+            else:
+                conn.send(("ok", _as_numpy(calls[name]())))
+        except BaseException:
+            conn.send(("error", traceback.format_exc()))
 
 
 def xla_pool_threads() -> int | None:
@@ -59,26 +182,33 @@ def xla_pool_threads() -> int | None:
     return count
 
 
-def matmul_peak(n: int, repeats: int, warmup: int, with_torch: bool, dtype: str = "float32") -> dict:
-    """GFLOP/s of an n x n matmul in `dtype` on JAX's default device, jitted, and, if asked,
-    torch.mm of the float32 arrays on the CPU (medians)."""
+def matmul_call(n: int, framework: str, dtype: str = "float32", device: str = "cpu"):
+    """A zero-argument callable running one n x n matmul in `framework` ('jax': jitted on JAX's
+    default device, in `dtype`; 'torch': torch.mm on `device`), blocking until done; 2 n^3
+    FLOPs per call, the machine's attainable matmul peak (`peak_gflops`)."""
     rng = np.random.default_rng(0)
     a = rng.standard_normal((n, n), dtype=np.float32)
     b = rng.standard_normal((n, n), dtype=np.float32)
-    xa, xb = jnp.asarray(a, dtype), jnp.asarray(b, dtype)
-    mm = jax.jit(jnp.matmul).lower(xa, xb).compile()
-    fns = [lambda: mm(xa, xb).block_until_ready()]
-    if with_torch:
-        import torch
+    if framework == "jax":
+        xa, xb = jnp.asarray(a, dtype), jnp.asarray(b, dtype)
+        mm = jax.jit(jnp.matmul).lower(xa, xb).compile()
+        return lambda: mm(xa, xb).block_until_ready()
+    import torch
 
-        ta, tb = torch.from_numpy(a), torch.from_numpy(b)
-        fns.append(lambda: torch.mm(ta, tb))
-    seconds = interleaved_medians(fns, repeats, warmup)
-    flops = 2.0 * n**3
-    result = {"size": n, "dtype": dtype, "xla_gflops": flops / seconds[0] / 1e9}
-    if with_torch:
-        result["torch_gflops"] = flops / seconds[1] / 1e9
-    return result
+    ta, tb = (torch.from_numpy(m).to(device, getattr(torch, dtype)) for m in (a, b))
+
+    def mm_torch():
+        out = torch.mm(ta, tb)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        return out
+
+    return mm_torch
+
+
+def peak_gflops(n: int, seconds: float) -> float:
+    """GFLOP/s of an n x n matmul that took `seconds`."""
+    return 2.0 * n**3 / seconds / 1e9
 
 
 def usable_cpus() -> int:
@@ -87,27 +217,24 @@ def usable_cpus() -> int:
     return os.cpu_count() or 1
 
 
-
-def set_threads(threads: int, with_torch: bool) -> dict:
-    """Gives XLA and (if asked) torch `threads` intra-op threads; call before JAX's first
-    computation. XLA: PJRT_NPROC, read when its CPU client starts. torch: set_num_threads, with
-    OpenMP's threads waiting passively (OMP_WAIT_POLICY=PASSIVE unless the environment sets it:
-    spinning OpenMP threads interleaved with XLA's calls in one process made torch up to 50x
-    slower on a busy 2-core machine). Returns the versions and the policy, for the report."""
+def set_xla_threads(threads: int) -> None:
+    """Gives XLA's CPU client `threads` intra-op threads (PJRT_NPROC, read when it starts); call
+    before JAX's first computation."""
     from jax._src import xla_bridge
 
     if xla_bridge.backends_are_initialized() and os.environ.get("PJRT_NPROC") != str(threads):
-        print(f"warning: JAX already started; XLA keeps its thread pool, --threads {threads} "
-              "applies to torch only")
+        print(f"warning: JAX already started; XLA keeps its thread pool, not --threads {threads}")
     os.environ["PJRT_NPROC"] = str(threads)
-    versions = {"jax": jax.__version__}
-    if with_torch:
-        omp_policy = os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-        import torch
 
-        torch.set_num_threads(threads)
-        versions.update(torch=torch.__version__, omp_wait_policy=omp_policy)
-    return versions
+
+def versions() -> dict:
+    """jax's and (where installed) torch's versions, for a benchmark's report."""
+    found = {"jax": jax.__version__}
+    try:
+        import torch
+    except ImportError:
+        return found
+    return {**found, "torch": torch.__version__}
 
 
 def write_json(path: str | None, figures: dict) -> None:

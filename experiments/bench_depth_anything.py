@@ -30,7 +30,9 @@ float32) and --amp (torch autocast bf16 on the official side); see README "Bench
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
+import functools
 import importlib.util
 import os
 import platform
@@ -44,12 +46,14 @@ import numpy as np
 import optax
 
 from experiments.bench_common import (
+    Worker,
     compiled_with_seconds,
     flops_of,
     interleaved_medians,
-    matmul_peak,
-    set_threads,
+    matmul_call,
+    peak_gflops,
     usable_cpus,
+    versions,
     write_json,
 )
 from experiments.bench_unet import parse_size
@@ -127,11 +131,101 @@ def torch_train_step(model, amp: bool):
     return step
 
 
-def bench_pair(name, ours, theirs, flops, repeats, warmup, batch) -> dict:
-    seconds = interleaved_medians([ours, theirs] if theirs else [ours], repeats, warmup)
+def forward_name(size) -> str:
+    return f"forward_{size[0]}x{size[1]}"
+
+
+def bench_inputs(sizes, batch: int, train_size, train_batch: int):
+    """The same random images (B, H, W, 3) per size, and the train step's images, depths in
+    [1, MAX_DEPTH) and valid mask, for every side."""
+    images = {tuple(size): np.random.default_rng(0).normal(size=(batch, *size, 3)).astype(np.float32)
+              for size in sizes}
+    rng = np.random.default_rng(1)
+    h, w = train_size
+    train = (rng.normal(size=(train_batch, h, w, 3)).astype(np.float32),
+             rng.uniform(1.0, MAX_DEPTH, (train_batch, h, w)).astype(np.float32),
+             rng.random((train_batch, h, w)) < 0.9)
+    return images, train
+
+
+def setup_ours(weights: str | None, encoder: str, mode: str, dtype: str, remat: bool, sizes,
+               batch: int, train_size, train_batch: int, peak_size: int):
+    """`Worker` set-up of our side: weights from the transformers model saved at `weights`
+    (None: random, key 0), position embeddings resampled as `mode`; calls 'forward_HxW' per
+    size, 'train' (when train_batch) and 'matmul'; info: compile seconds and FLOPs per call."""
+    cfg = dataclasses.replace(depth_anything_config(encoder, metric=True, max_depth=MAX_DEPTH),
+                              pos_embed_mode=mode, dtype=dtype, remat=remat)
+    model = DepthAnythingV2(cfg)
+    images, (x, depth, valid) = bench_inputs(sizes, batch, train_size, train_batch)
+    if weights:
+        _, params = load_depth_anything(weights, kind="metric", max_depth=MAX_DEPTH)
+    else:
+        x0 = jnp.zeros((1, *sizes[0], 3), jnp.float32)
+        params = jax.jit(model.init)(jax.random.key(0), x0)["params"]
+    calls, info = {}, {}
+    for size, array in images.items():
+        xs = jnp.asarray(array)
+        forward, compile_s = compiled_with_seconds(jax.jit(model.apply), {"params": params}, xs)
+        name = forward_name(size)
+        calls[name] = functools.partial(lambda f, xs: f({"params": params}, xs).block_until_ready(),
+                                        forward, xs)
+        info[name] = {"compile_s": compile_s, "flops": flops_of(forward)}
+    if train_batch:
+        tx = optax.adamw(**ADAMW)
+        step_args = (params, tx.init(params), jnp.asarray(x), jnp.asarray(depth), jnp.asarray(valid))
+        step, compile_s = compiled_with_seconds(make_train_step(model, tx), *step_args)
+        calls["train"] = lambda: jax.block_until_ready(step(*step_args)[-1])
+        info["train"] = {"compile_s": compile_s, "flops": flops_of(step)}
+    calls["matmul"] = matmul_call(peak_size, "jax", dtype)
+    device = jax.devices()[0]
+    info["device"] = f"{device.platform}:{device.device_kind}"
+    return calls, info
+
+
+def setup_reference(kind: str, weights: str, official_repo: str | None, encoder: str, amp: bool,
+                    sizes, batch: int, train_size, train_batch: int, peak_size: int):
+    """`Worker` set-up of a PyTorch side, `kind` 'transformers' (forward only) or 'official'
+    (the official metric model, `official_repo`; forward and 'train'), with the weights saved
+    at `weights`; on CUDA when torch sees a GPU. The same call names as `setup_ours`."""
+    import torch
+    from transformers import DepthAnythingForDepthEstimation
+
+    from experiments.torch_reference import hf_to_official
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    hf = DepthAnythingForDepthEstimation.from_pretrained(weights).eval()
+    if kind == "official":
+        cfg = depth_anything_config(encoder, metric=True, max_depth=MAX_DEPTH)
+        model = official_metric_model(official_repo, cfg, hf_to_official(hf)).to(device).eval()
+    else:
+        model = hf.to(device)
+    images, train = bench_inputs(sizes, batch, train_size, train_batch)
+
+    def forward(pixels):
+        with torch.inference_mode(), torch.autocast(device, torch.bfloat16, enabled=amp):
+            out = model(pixel_values=pixels).predicted_depth if kind == "transformers" else model(pixels)
+        if device == "cuda":
+            torch.cuda.synchronize()
+        return out
+
+    calls = {}
+    for size, array in images.items():
+        pixels = torch.from_numpy(np.ascontiguousarray(array.transpose(0, 3, 1, 2))).to(device)
+        calls[forward_name(size)] = functools.partial(forward, pixels)
+    if kind == "official" and train_batch:
+        x, depth, valid = (torch.from_numpy(np.ascontiguousarray(a)).to(device)
+                           for a in (train[0].transpose(0, 3, 1, 2), *train[1:]))
+        step = torch_train_step(model, amp)
+        calls["train"] = lambda: step(x, depth, valid)
+    calls["matmul"] = matmul_call(peak_size, "torch", "bfloat16" if amp else "float32", device)
+    return calls, {"threads": torch.get_num_threads(), "torch_device": device}
+
+
+def bench_pair(name, timers, flops, repeats, warmup, batch) -> dict:
+    seconds = interleaved_medians(timers, repeats, warmup)
     row = {"reference": name, "batch": batch, "ours_ms": 1e3 * seconds[0],
            "ours_images_per_s": batch / seconds[0], "ours_gflops": flops / seconds[0] / 1e9}
-    if theirs:
+    if len(timers) > 1:
         row.update(theirs_ms=1e3 * seconds[1], theirs_images_per_s=batch / seconds[1],
                    ours_over_theirs=seconds[0] / seconds[1])
     return row
@@ -155,110 +249,91 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=usable_cpus(),
                         help="intra-op threads of torch and XLA (CPU)")
+    parser.add_argument("--peak-size", type=int, default=2048,
+                        help="N of the N x N peak matmul (8192 suits a GPU)")
     parser.add_argument("--no-torch", action="store_true", help="time ours only")
+    parser.add_argument("--default-malloc", action="store_true",
+                        help="leave glibc's malloc as it is in both sides' processes (default: both "
+                             "keep freed memory for reuse, irdepth_jax.hostmem)")
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
     args = parser.parse_args(argv)
     with_torch = not args.no_torch
-    versions = set_threads(args.threads, with_torch)
-
-    base = depth_anything_config(args.encoder, metric=True, max_depth=MAX_DEPTH)
-    device = jax.devices()[0]
     summary = {"encoder": args.encoder, "dtype": args.dtype, "amp": args.amp, "threads": args.threads,
-               "device": f"{device.platform}:{device.device_kind}",
+               "processes": "one per side (Worker)", "keep_freed_memory": not args.default_malloc,
                "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
-               **versions}
+               **versions()}
     print("Depth Anything V2: " + " ".join(f"{k}={v}" for k, v in summary.items()))
-    on_cpu = device.platform == "cpu"
-    peak = matmul_peak(2048 if on_cpu else 8192, args.repeats, args.warmup, False, args.dtype)
-    print(f"matmul peak, {args.dtype} {peak['size']}^2: XLA {peak['xla_gflops']:.1f} GFLOP/s")
-
-    references, params = {}, None
-    if with_torch:
-        import torch
-
-        from experiments.torch_reference import hf_to_official, random_hf_model
-
-        torch_device = "cuda" if device.platform == "gpu" else "cpu"
-        hf = random_hf_model(dataclasses.replace(base, pos_embed_mode="transformers"))
-        with tempfile.TemporaryDirectory() as tmp:
-            hf.save_pretrained(tmp)
-            _, params = load_depth_anything(tmp, kind="metric", max_depth=MAX_DEPTH)
-        references["transformers"] = ("transformers", hf.to(torch_device).eval())
-        if args.official_repo:
-            official = official_metric_model(args.official_repo, base, hf_to_official(hf.cpu()))
-            references["official"] = ("official", official.to(torch_device).eval())
-            hf.to(torch_device)
-    ours_cfg = {mode: dataclasses.replace(base, pos_embed_mode=mode, dtype=args.dtype,
-                                          remat=args.remat) for mode in ("official", "transformers")}
-    if params is None:
-        x0 = jnp.zeros((1, *args.sizes[0], 3), jnp.float32)
-        params = jax.jit(DepthAnythingV2(base).init)(jax.random.key(0), x0)["params"]
-
+    shape = dict(sizes=args.sizes, batch=args.batch, train_size=args.train_size,
+                 train_batch=args.train_batch, peak_size=args.peak_size)
+    # ours against the official code uses its position-embedding resampling, against
+    # transformers the transformers one: every pair computes the same function
+    refs = {"transformers": "transformers", "official": "official"} if with_torch else {"none": "official"}
+    if with_torch and not args.official_repo:
+        del refs["official"]
     rows = []
-    for h, w in args.sizes:
-        x = np.random.default_rng(0).normal(size=(args.batch, h, w, 3)).astype(np.float32)
-        images = jnp.asarray(x)
-        for ref_name, (mode, model) in (references or {"none": ("official", None)}).items():
-            forward, compile_s = compiled_with_seconds(
-                jax.jit(DepthAnythingV2(ours_cfg[mode]).apply), {"params": params}, images)
-            ours = lambda: forward({"params": params}, images).block_until_ready()  # noqa: E731
-            theirs, diff = None, None
-            if model is not None:
-                pixels = torch.from_numpy(np.ascontiguousarray(x.transpose(0, 3, 1, 2))).to(torch_device)
+    with tempfile.TemporaryDirectory() as weights, contextlib.ExitStack() as stack:
+        if with_torch:
+            from experiments.torch_reference import random_hf_model
 
-                def theirs(model=model, pixels=pixels, ref_name=ref_name):
-                    with torch.inference_mode(), torch.autocast(torch_device, torch.bfloat16, enabled=args.amp):
-                        out = model(pixel_values=pixels).predicted_depth if ref_name == "transformers" \
-                            else model(pixels)
-                    if torch_device == "cuda":
-                        torch.cuda.synchronize()
-                    return out
+            base = depth_anything_config(args.encoder, metric=True, max_depth=MAX_DEPTH)
+            random_hf_model(dataclasses.replace(base, pos_embed_mode="transformers")).save_pretrained(weights)
+        for ref_name, mode in refs.items():
+            ours = stack.enter_context(Worker(
+                setup_ours, weights if with_torch else None, args.encoder, mode, args.dtype,
+                args.remat, **{**shape, "train_batch": shape["train_batch"] if mode == "official" else 0},
+                threads=args.threads, keep_memory=not args.default_malloc))
+            sides = [ours]
+            if with_torch:
+                sides.append(stack.enter_context(Worker(
+                    setup_reference, ref_name, weights, args.official_repo, args.encoder, args.amp,
+                    **{**shape, "train_batch": shape["train_batch"] if ref_name == "official" else 0},
+                    threads=args.threads, keep_memory=not args.default_malloc)))
+            if "matmul_peak" not in summary:
+                seconds = interleaved_medians([functools.partial(s.time, "matmul") for s in sides],
+                                              args.repeats, args.warmup)
+                summary["device"] = ours.info["device"]
+                summary["matmul_peak"] = {"size": args.peak_size, "dtype": args.dtype,
+                                          "xla_gflops": peak_gflops(args.peak_size, seconds[0])}
+                if with_torch:
+                    summary["matmul_peak"]["torch_gflops"] = peak_gflops(args.peak_size, seconds[1])
+                    summary["torch_device"] = sides[1].info["torch_device"]
+                print(f"device {summary['device']}; matmul peak, {args.dtype} {args.peak_size}^2: "
+                      + ", ".join(f"{k} {v:.1f} GFLOP/s" for k, v in summary["matmul_peak"].items()
+                                  if k.endswith("gflops")))
+            sizes = {forward_name(size): size for size in args.sizes}
+            names = list(sizes)
+            if args.train_batch and mode == "official":
+                names.append("train")
+            for name in names:
+                diff = None
+                if with_torch and name != "train":
+                    ref = sides[1].result(name).reshape(args.batch, -1)
+                    out = ours.result(name).reshape(args.batch, -1)
+                    diff = float(np.abs(out - ref).max() / np.abs(ref).max())
+                train = name == "train"
+                row = bench_pair(ref_name, [functools.partial(s.time, name) for s in sides],
+                                 ours.info[name]["flops"], args.repeats, args.warmup,
+                                 args.train_batch if train else args.batch)
+                row.update(kind="train_step" if train else "forward",
+                           size=list(args.train_size if train else sizes[name]),
+                           compile_s=ours.info[name]["compile_s"], max_diff_over_max=diff)
+                rows.append(row)
+            stack.close()
 
-                ref = theirs().float().cpu().numpy().reshape(args.batch, h, w)
-                out = np.asarray(forward({"params": params}, images))
-                diff = float(np.abs(out - ref).max() / np.abs(ref).max())
-            row = bench_pair(ref_name, ours, theirs, flops_of(forward), args.repeats, args.warmup,
-                             args.batch)
-            row.update(kind="forward", size=[h, w], compile_s=compile_s, max_diff_over_max=diff)
-            rows.append(row)
-
-    if args.train_batch:
-        h, w = args.train_size
-        rng = np.random.default_rng(1)
-        x = rng.normal(size=(args.train_batch, h, w, 3)).astype(np.float32)
-        depth = rng.uniform(1.0, MAX_DEPTH, (args.train_batch, h, w)).astype(np.float32)
-        valid = rng.random((args.train_batch, h, w)) < 0.9
-        tx = optax.adamw(**ADAMW)
-        step_args = (params, tx.init(params), jnp.asarray(x), jnp.asarray(depth), jnp.asarray(valid))
-        step, compile_s = compiled_with_seconds(
-            make_train_step(DepthAnythingV2(ours_cfg["official"]), tx), *step_args)
-        ours = lambda: jax.block_until_ready(step(*step_args))  # noqa: E731
-        theirs = None
-        if "official" in references:
-            model = references["official"][1]
-            t = [torch.from_numpy(np.ascontiguousarray(a)).to(torch_device)
-                 for a in (x.transpose(0, 3, 1, 2), depth, valid)]
-            official_step = torch_train_step(model, args.amp)
-            theirs = lambda: official_step(*t)  # noqa: E731
-        row = bench_pair("official" if theirs else "none", ours, theirs, flops_of(step), args.repeats,
-                         args.warmup, args.train_batch)
-        row.update(kind="train_step", size=[h, w], compile_s=compile_s)
-        rows.append(row)
-
+    peak = summary["matmul_peak"]["xla_gflops"]
     print(f"{'kind':>10} | {'reference':>12} | {'size':>9} | batch | ours ms | theirs ms | ours/theirs "
           f"| GFLOP/s | % peak | compile s | max diff")
     for r in rows:
-        pct = 100 * r["ours_gflops"] / peak["xla_gflops"]
-        r["peak_pct"] = pct
+        r["peak_pct"] = 100 * r["ours_gflops"] / peak
         cells = [f"{r['kind']:>10}", f"{r['reference']:>12}", f"{r['size'][0]:>4}x{r['size'][1]:<4}",
-                 f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}",
-                 f"{r.get('theirs_ms', float('nan')):>9.1f}", f"{r.get('ours_over_theirs', float('nan')):>11.2f}",
-                 f"{r['ours_gflops']:>7.1f}", f"{pct:>6.0f}",
-                 f"{r['compile_s']:>9.1f}"]
+                 f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}"]
+        for key, spec, width in (("theirs_ms", ".1f", 9), ("ours_over_theirs", ".2f", 11)):
+            cells.append(f"{r[key]:>{width}{spec}}" if key in r else f"{'-':>{width}}")
+        cells += [f"{r['ours_gflops']:>7.1f}", f"{r['peak_pct']:>6.0f}", f"{r['compile_s']:>9.1f}"]
         diff = r.get("max_diff_over_max")  # None: nothing to compare (train step, --no-torch)
         cells.append(f"{'-':>8}" if diff is None else f"{diff:>8.1e}")
         print(" | ".join(cells))
-    summary.update(matmul_peak=peak, results=rows)
+    summary.update(results=rows)
     write_json(args.json, summary)
     return summary
 

@@ -18,13 +18,14 @@ cores, so the overlap costs some step time there; a GPU has the cores to itself)
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import tempfile
 import time
 
 import jax
 
-from experiments.bench_common import interleaved_medians, set_threads, usable_cpus, write_json
+from experiments.bench_common import interleaved_medians, set_xla_threads, usable_cpus, wall_seconds, write_json
 from experiments.bench_unet import parse_size
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import BatchStream, DataSource, device_batch, make_loader, phase_frames
@@ -48,7 +49,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--threads", type=int, default=usable_cpus(), help="XLA intra-op threads")
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
     args = parser.parse_args(argv)
-    set_threads(args.threads, with_torch=False)
+    set_xla_threads(args.threads)
     h, w = args.size
     cfg = apply_overrides(get_config(args.preset), [f"data.height={h}", f"data.width={w}"])
     batch_size = cfg.stage1.batch_size
@@ -86,7 +87,8 @@ def main(argv=None) -> dict:
             jax.block_until_ready(metrics)
 
         start = time.perf_counter()
-        seconds = interleaved_medians([step_alone, loader_alone, training], args.repeats, warmup=1)
+        timers = [functools.partial(wall_seconds, fn) for fn in (step_alone, loader_alone, training)]
+        seconds = interleaved_medians(timers, args.repeats, warmup=1)
         wall = time.perf_counter() - start
     images = args.steps * batch_size
     result = {"preset": args.preset, "size": [h, w], "batch": batch_size, "steps": args.steps,

@@ -19,19 +19,20 @@ the twin) on the same random uint16 raw frames (timings do not depend on the con
 wall-clock medians over --repeats calls after --warmup untimed ones, ours and the twin's calls
 interleaved (A, B, A, B, ...) so that a drift in the machine's load hits both alike.
 
+Processes: each side runs in a process of its own (`bench_common.Worker`), the parent only
+alternates their calls; in one process each side ran among the other's threads and freed
+memory (measured: our batch-4 train step 9.7 s between the twin's calls, 5.5 s alone).
 Threads: --threads N (default: the CPUs this process may run on) gives both N intra-op
-threads: torch.set_num_threads(N), and XLA's CPU thread pool through the PJRT_NPROC
-environment variable, which jaxlib reads when its CPU client starts (so it must be set before
-JAX's first computation; this script sets it first thing, and prints the size of the pool it
-got). OpenMP: torch's threads wait passively (OMP_WAIT_POLICY=PASSIVE, unless the environment
-sets it): with the default spinning, torch's calls interleaved with XLA's in one process were up
-to 50x slower (measured on a busy 2-core machine: a 256^2 matmul 0.3 ms alone, 15 ms between XLA
-calls; 0.4 ms passive). OMP_WAIT_POLICY=ACTIVE compares. --no-torch times ours only.
+threads: OMP_NUM_THREADS for torch, and XLA's CPU thread pool through PJRT_NPROC (read when
+jaxlib's CPU client starts; the pool's size is printed). OpenMP's threads wait passively
+(OMP_WAIT_POLICY=PASSIVE, unless the environment sets it), so an idle side takes no CPU from the
+one computing. --no-torch times ours only.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import functools
 import os
@@ -43,12 +44,14 @@ import numpy as np
 import optax
 
 from experiments.bench_common import (
+    Worker,
     compiled_with_seconds,
     flops_of,
     interleaved_medians,
-    matmul_peak,
-    set_threads,
+    matmul_call,
+    peak_gflops,
     usable_cpus,
+    versions,
     write_json,
     xla_pool_threads,
 )
@@ -123,71 +126,112 @@ def make_torch_train_step(model, optimizer):
     return step
 
 
-def bench_case(model, size, batch: int, repeats: int, warmup: int, with_torch: bool) -> dict:
-    h, w = size
+def unet_config(preset: str, use_rgg: bool):
+    return dataclasses.replace(get_config(preset).unet, use_rgg=use_rgg)
+
+
+def bench_inputs(num_classes: int, size, batch: int):
+    """The same random raw frames, targets and labels for both sides: (B, H, W) uint16,
+    (B, H, W, 1) float32, (B, H, W) int32 (timings do not depend on the content)."""
     rng = np.random.default_rng(0)
-    raw_np = rng.integers(2000, 9000, (batch, h, w)).astype(np.uint16)
-    target_np = rng.random((batch, h, w, 1), dtype=np.float32)
-    labels_np = rng.integers(0, model.cfg.num_classes, (batch, h, w)).astype(np.int32)
-    raw, target, labels = jnp.asarray(raw_np), jnp.asarray(target_np), jnp.asarray(labels_np)
+    h, w = size
+    return (rng.integers(2000, 9000, (batch, h, w)).astype(np.uint16),
+            rng.random((batch, h, w, 1), dtype=np.float32),
+            rng.integers(0, num_classes, (batch, h, w)).astype(np.int32))
 
-    init, init_s = compiled_with_seconds(jax.jit(model.init), jax.random.key(0), raw)
-    variables = init(jax.random.key(0), raw)
+
+def init_variables(model: MTSAUNet, raw):
+    """Our random weights (key 0), the ones both sides run; (variables, compile seconds)."""
+    init, seconds = compiled_with_seconds(jax.jit(model.init), jax.random.key(0), raw)
+    return init(jax.random.key(0), raw), seconds
+
+
+def setup_ours(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
+    """`Worker` set-up of our side: calls 'forward' (eval mode), 'train' (one AdaDelta step)
+    and 'matmul'; info: compile seconds, XLA's FLOP counts, the XLA pool's threads, device."""
+    model = MTSAUNet(unet_config(preset, use_rgg))
+    raw, target, labels = (jnp.asarray(a) for a in bench_inputs(model.cfg.num_classes, size, batch))
+    variables, init_s = init_variables(model, raw)
     tx = optax.adadelta(**ADADELTA)
-    opt_state = tx.init(variables["params"])
     # data passed as arguments: closed-over arrays would become constants XLA tries to fold
-    step_args = (variables["params"], variables["batch_stats"], opt_state, raw, target, labels)
-    forward, fwd_s = compiled_with_seconds(
-        jax.jit(functools.partial(model.apply, train=False)), variables, raw
-    )
+    step_args = (variables["params"], variables["batch_stats"], tx.init(variables["params"]), raw,
+                 target, labels)
+    forward, fwd_s = compiled_with_seconds(jax.jit(functools.partial(model.apply, train=False)),
+                                           variables, raw)
     train_step, train_s = compiled_with_seconds(make_train_step(model, tx), *step_args)
-    fwd_fns = [lambda: jax.block_until_ready(forward(variables, raw))]
-    train_fns = [lambda: jax.block_until_ready(train_step(*step_args))]
+    device = jax.devices()[0]
+    calls = {"forward": lambda: jax.block_until_ready(forward(variables, raw)),
+             "train": lambda: jax.block_until_ready(train_step(*step_args)[-1]),
+             "matmul": matmul_call(peak_size, "jax")}
+    info = {"compile_init_s": init_s, "compile_fwd_s": fwd_s, "compile_train_s": train_s,
+            "fwd_flops": flops_of(forward), "train_flops": flops_of(train_step),
+            "xla_pool_threads": xla_pool_threads(), "device": f"{device.platform}:{device.device_kind}"}
+    return calls, info
 
-    result = {
-        "size": [h, w], "batch": batch,
-        "compile_init_s": init_s, "compile_fwd_s": fwd_s, "compile_train_s": train_s,
-        "fwd_flops": flops_of(forward), "train_flops": flops_of(train_step),
-    }
-    if with_torch:
-        import torch
 
-        from experiments.unet_torch import MTSAUNetTorch, load_flax_params
+def setup_twin(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
+    """`Worker` set-up of the PyTorch twin with our weights: the same calls as `setup_ours`
+    (forward outputs NCHW)."""
+    import torch
 
-        twin = load_flax_params(MTSAUNetTorch(model.cfg), jax.device_get(variables))
-        t_raw = torch.from_numpy(raw_np)
-        t_target = torch.from_numpy(np.ascontiguousarray(target_np.transpose(0, 3, 1, 2)))
-        t_labels = torch.from_numpy(labels_np.astype(np.int64))
-        ours = forward(variables, raw)
+    from experiments.unet_torch import MTSAUNetTorch, load_flax_params
+
+    cfg = unet_config(preset, use_rgg)
+    raw, target, labels = bench_inputs(cfg.num_classes, size, batch)
+    variables, _ = init_variables(MTSAUNet(cfg), jnp.asarray(raw))
+    twin = load_flax_params(MTSAUNetTorch(cfg), jax.device_get(variables))
+    t_raw = torch.from_numpy(raw)
+    t_target = torch.from_numpy(np.ascontiguousarray(target.transpose(0, 3, 1, 2)))
+    t_labels = torch.from_numpy(labels.astype(np.int64))
+    adadelta = dict(ADADELTA)
+    optimizer = torch.optim.Adadelta(twin.parameters(), lr=adadelta.pop("learning_rate"), **adadelta)
+    train_step = make_torch_train_step(twin, optimizer)
+
+    def forward():
+        twin.eval()
         with torch.inference_mode():
-            theirs = twin.eval()(t_raw)
-        result["fwd_max_abs_diff"] = max(
-            float(np.abs(np.asarray(ours[k]) - theirs[k].permute(0, 2, 3, 1).numpy()).max())
-            for k in ours
-        )
+            return twin(t_raw)
 
-        def torch_forward():
-            twin.eval()
-            with torch.inference_mode():
-                twin(t_raw)
+    calls = {"forward": forward, "train": lambda: train_step(t_raw, t_target, t_labels),
+             "matmul": matmul_call(peak_size, "torch")}
+    return calls, {"threads": torch.get_num_threads(), "torch": torch.__version__}
 
-        adadelta = dict(ADADELTA)
-        optimizer = torch.optim.Adadelta(twin.parameters(), lr=adadelta.pop("learning_rate"), **adadelta)
-        torch_step = make_torch_train_step(twin, optimizer)
-        fwd_fns.append(torch_forward)
-        train_fns.append(lambda: torch_step(t_raw, t_target, t_labels))
 
-    fwd = interleaved_medians(fwd_fns, repeats, warmup)
-    train = interleaved_medians(train_fns, repeats, warmup)
-    for name, seconds in (("fwd", fwd), ("train", train)):
-        result[f"{name}_ours_ms"] = 1e3 * seconds[0]
-        result[f"{name}_ours_ms_per_img"] = 1e3 * seconds[0] / batch
-        result[f"{name}_ours_gflops"] = result[f"{name}_flops"] / seconds[0] / 1e9
+def bench_case(cfg_args: tuple, size, batch: int, repeats: int, warmup: int, threads: int,
+               with_torch: bool, peak_size: int | None, keep_memory: bool = True) -> dict:
+    """One (size, batch): ours and (with_torch) the twin, each in its own `Worker`. Measures
+    the matmul peak too when `peak_size` is given."""
+    args = (*cfg_args, size, batch, peak_size or 256)
+    with contextlib.ExitStack() as stack:
+        sides = [stack.enter_context(Worker(setup_ours, *args, threads=threads, keep_memory=keep_memory))]
         if with_torch:
-            result[f"{name}_torch_ms"] = 1e3 * seconds[1]
-            result[f"{name}_torch_ms_per_img"] = 1e3 * seconds[1] / batch
-            result[f"{name}_ours_over_torch"] = seconds[0] / seconds[1]
-            result[f"{name}_torch_gflops"] = result[f"{name}_flops"] / seconds[1] / 1e9
+            sides.append(stack.enter_context(Worker(setup_twin, *args, threads=threads,
+                                                    keep_memory=keep_memory)))
+        ours = sides[0]
+        result = {"size": list(size), "batch": batch, **ours.info}
+        if with_torch:
+            theirs = sides[1].result("forward")
+            result["fwd_max_abs_diff"] = max(
+                float(np.abs(v - theirs[k].transpose(0, 2, 3, 1)).max())
+                for k, v in ours.result("forward").items())
+        for name, key in (("forward", "fwd"), ("train", "train")):
+            seconds = interleaved_medians([functools.partial(s.time, name) for s in sides],
+                                          repeats, warmup)
+            result[f"{key}_ours_ms"] = 1e3 * seconds[0]
+            result[f"{key}_ours_ms_per_img"] = 1e3 * seconds[0] / batch
+            result[f"{key}_ours_gflops"] = result[f"{key}_flops"] / seconds[0] / 1e9
+            if with_torch:
+                result[f"{key}_torch_ms"] = 1e3 * seconds[1]
+                result[f"{key}_torch_ms_per_img"] = 1e3 * seconds[1] / batch
+                result[f"{key}_ours_over_torch"] = seconds[0] / seconds[1]
+                result[f"{key}_torch_gflops"] = result[f"{key}_flops"] / seconds[1] / 1e9
+        if peak_size:
+            seconds = interleaved_medians([functools.partial(s.time, "matmul") for s in sides],
+                                          repeats, warmup)
+            result["matmul_peak"] = {"size": peak_size, "xla_gflops": peak_gflops(peak_size, seconds[0])}
+            if with_torch:
+                result["matmul_peak"]["torch_gflops"] = peak_gflops(peak_size, seconds[1])
+                result["torch_threads"] = sides[1].info["threads"]
     return result
 
 
@@ -242,38 +286,44 @@ def main(argv=None) -> dict:
     parser.add_argument("--peak-size", type=int, default=2048, help="N of the N x N peak matmul")
     parser.add_argument("--no-rgg", action="store_true", help="time the use_rgg=False ablation")
     parser.add_argument("--no-torch", action="store_true", help="time ours only (no PyTorch twin)")
+    parser.add_argument("--default-malloc", action="store_true",
+                        help="leave glibc's malloc as it is in both sides' processes (default: both "
+                             "keep freed memory for reuse, irdepth_jax.hostmem)")
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
     args = parser.parse_args(argv)
 
     with_torch = not args.no_torch
-    versions = set_threads(args.threads, with_torch)
-
-    cfg = get_config(args.preset).unet
-    if args.no_rgg:
-        cfg = dataclasses.replace(cfg, use_rgg=False)
-    model = MTSAUNet(cfg)
-    device = jax.devices()[0]
+    cfg_args = (args.preset, not args.no_rgg)
     summary = {
-        "preset": args.preset, "use_rgg": cfg.use_rgg, "repeats": args.repeats,
-        "threads": args.threads, "device": f"{device.platform}:{device.device_kind}",
-        "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), **versions,
+        "preset": args.preset, "use_rgg": cfg_args[1], "repeats": args.repeats,
+        "threads": args.threads, "processes": "one per side (Worker)",
+        "keep_freed_memory": not args.default_malloc,
+        "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
+        "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), **versions(),
     }
     title = "MTSA-UNet vs its PyTorch twin" if with_torch else "MTSA-UNet"
     print(f"{title}: " + " ".join(f"{k}={v}" for k, v in summary.items()))
-    peak = matmul_peak(args.peak_size, args.repeats, args.warmup, with_torch)
-    summary["xla_pool_threads"] = xla_pool_threads()
-    print(f"XLA intra-op pool threads: {summary['xla_pool_threads']}; matmul peak, float32 "
-          f"{args.peak_size}^2: XLA {peak['xla_gflops']:.1f} GFLOP/s"
-          + (f", torch {peak['torch_gflops']:.1f} GFLOP/s" if with_torch else ""))
-    print("times: medians per call (the whole batch); GFLOP/s and % peak: ours, from XLA's FLOP count")
-    print()
-    results = [
-        bench_case(model, size, batch, args.repeats, args.warmup, with_torch)
-        for size in args.sizes
-        for batch in args.batch
-    ]
-    print_tables(results, peak["xla_gflops"])
-    summary.update(matmul_peak=peak, results=results)
+    results = []
+    for size in args.sizes:
+        for batch in args.batch:
+            peak = args.peak_size if not results else None
+            results.append(bench_case(cfg_args, size, batch, args.repeats, args.warmup,
+                                      args.threads, with_torch, peak, not args.default_malloc))
+            if peak:
+                summary["matmul_peak"] = results[-1].pop("matmul_peak")
+                summary["device"] = results[-1]["device"]
+                summary["xla_pool_threads"] = results[-1]["xla_pool_threads"]
+                summary["torch_threads"] = results[-1].get("torch_threads")
+                mm = summary["matmul_peak"]
+                print(f"device {summary['device']}; XLA intra-op pool threads: "
+                      f"{summary['xla_pool_threads']}; matmul peak, float32 {args.peak_size}^2: "
+                      f"XLA {mm['xla_gflops']:.1f} GFLOP/s"
+                      + (f", torch {mm['torch_gflops']:.1f} GFLOP/s" if with_torch else ""))
+                print("times: medians per call (the whole batch); GFLOP/s and % peak: ours, from "
+                      "XLA's FLOP count")
+                print()
+    print_tables(results, summary["matmul_peak"]["xla_gflops"])
+    summary.update(results=results)
     write_json(args.json, summary)
     return summary
 

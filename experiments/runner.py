@@ -29,6 +29,7 @@ import numpy as np
 
 from experiments.cache import DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
 from experiments.report import git_commit, hardware, summarise, write_outputs
+from irdepth_jax.hostmem import keep_freed_memory
 
 RESULTS = os.path.join(REPO, "experiments", "results")
 EVAL_FRAMES = 1500
@@ -206,6 +207,7 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
     Returns the results.json record.
     """
     args = parse_args(table, argv)
+    keep_freed_memory()  # as the irdepth command does (irdepth_jax.hostmem)
     started = time.time()
     ctx = Context(args)
     frames: dict[str, np.ndarray] = {}

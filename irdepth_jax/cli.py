@@ -43,9 +43,14 @@ EPILOG_OVERRIDES = (
 
 # --------------------------------------------------------------------------- helpers
 def _setup_jax(args) -> None:
-    """Persistent XLA compilation cache (repeat runs skip compiling; JAX_COMPILATION_CACHE_DIR
-    or ~/.cache/irdepth_jax/xla; off with --no-compile-cache) and multi-host init."""
+    """Freed host memory kept for reuse (`hostmem.keep_freed_memory`; IRDEPTH_DEFAULT_MALLOC=1
+    leaves malloc alone), persistent XLA compilation cache (repeat runs skip compiling;
+    JAX_COMPILATION_CACHE_DIR or ~/.cache/irdepth_jax/xla; off with --no-compile-cache) and
+    multi-host init."""
     from irdepth_jax.compile_cache import default_cache_dir, enable_compilation_cache
+    from irdepth_jax.hostmem import keep_freed_memory
+
+    keep_freed_memory()
 
     enable_compilation_cache(None if getattr(args, "no_compile_cache", False)
                              else default_cache_dir())

@@ -12,6 +12,10 @@ os.environ["XLA_FLAGS"] = (
     os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4"
 ).strip()
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
+# The CLI and the experiment scripts, called in this process, would make malloc keep freed
+# memory for the rest of the session (irdepth_jax.hostmem); tests/test_hostmem.py checks it in
+# a process of its own.
+os.environ.setdefault("IRDEPTH_DEFAULT_MALLOC", "1")
 if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     # made by the pytest process (with -n N, before it starts the xdist workers, which inherit
     # the variable: all share one cache) and removed when it exits

@@ -135,3 +135,40 @@ class Conv(nn.Conv):
     `conv_general_dilated` above."""
 
     conv_general_dilated: object = staticmethod(conv_general_dilated)
+
+
+def upsample_by_matmul(x, kernel):
+    """A transposed convolution whose stride equals its kernel: each input pixel becomes a k x k
+    block, out[b, k i + p, k j + q, o] = sum_c x[b, i, j, c] kernel[p, q, c, o].
+
+    x: (B, h, w, C_in); kernel: (k, k, C_in, C_out) -> (B, k h, k w, C_out). One matmul and a
+    depth-to-space reshape: on XLA:CPU faster than the transposed convolution both ways (input
+    128x160x64 -> 32 channels: forward 4 vs 7 ms, kernel gradient 5 vs 270 ms).
+    """
+    k = kernel.shape[0]
+    b, h, w, c = x.shape
+    features = kernel.shape[-1]
+    y = x.reshape(-1, c) @ kernel.transpose(2, 0, 1, 3).reshape(c, k * k * features)
+    y = y.reshape(b, h, w, k, k, features).transpose(0, 1, 3, 2, 4, 5)
+    return y.reshape(b, k * h, k * w, features)
+
+
+class ConvTranspose(nn.Module):
+    """`flax.linen.ConvTranspose(features, (k, k), strides=(k, k), padding='VALID')` (same
+    parameters, initialisation and values) by `upsample_by_matmul`: (B, h, w, C) ->
+    (B, k h, k w, features). Flax's kernel is applied spatially flipped (lax.conv_transpose
+    without transpose_kernel), so the matmul takes kernel[::-1, ::-1]."""
+
+    features: int
+    factor: int
+    use_bias: bool = True
+    dtype: object = None
+
+    @nn.compact
+    def __call__(self, x):
+        k = self.factor
+        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, x.shape[-1], self.features))
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,)) if self.use_bias else None
+        x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
+        y = upsample_by_matmul(x, kernel[::-1, ::-1])
+        return y if bias is None else y + bias

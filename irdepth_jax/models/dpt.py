@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.models.conv import Conv
+from irdepth_jax.models.conv import Conv, ConvTranspose
 
 
 def resize_bilinear_align_corners(x: jax.Array, size: tuple[int, int]) -> jax.Array:
@@ -113,8 +113,8 @@ class DPTHead(nn.Module):
     def __call__(self, taps, grid):
         oc, dt = self.out_channels, self.dtype
         resize = {
-            0: nn.ConvTranspose(oc[0], (4, 4), strides=(4, 4), padding="VALID", dtype=dt, name="resize_layers_0"),
-            1: nn.ConvTranspose(oc[1], (2, 2), strides=(2, 2), padding="VALID", dtype=dt, name="resize_layers_1"),
+            0: ConvTranspose(oc[0], 4, dtype=dt, name="resize_layers_0"),
+            1: ConvTranspose(oc[1], 2, dtype=dt, name="resize_layers_1"),
             3: _conv(oc[3], 3, dt, "resize_layers_3", stride=2),
         }
         b = taps[0].shape[0]
