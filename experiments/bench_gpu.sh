@@ -5,8 +5,9 @@
 #     OFFICIAL_REPO=PATH/TO/Depth-Anything-V2 bash experiments/bench_gpu.sh [OUT_DIR]
 #
 # 1. Stage II train step (SiLog + AdamW, metric head) at 518x518, bf16 compute / f32 params,
-#    batch 8, ViT-S and ViT-L: ours vs the official code with torch AMP (bf16) on the same GPU,
-#    images/s, ratio, MFU against the measured bf16 matmul peak; forward at 518x518 and 364x644.
+#    batch 8, ViT-S and ViT-L: ours vs the official code with torch AMP (bf16) on the same GPU
+#    (each side in its own process, calls interleaved), images/s, ratio, MFU against the
+#    measured bf16 8192^2 matmul peak; forward at 518x518 and 364x644.
 # 2. Stage I, `paper` preset, at the paper's 1024x768 with accumulation 4 (batch 4): the real
 #    `irdepth train stage1` on 64 synthetic frames, images/s from metrics.jsonl (median of steps
 #    after the first, which compiles).
@@ -20,7 +21,7 @@ official=()
 if [[ -n "${OFFICIAL_REPO:-}" ]]; then official=(--official-repo "$OFFICIAL_REPO"); fi
 for encoder in vits vitl; do
   python experiments/bench_depth_anything.py --encoder "$encoder" --dtype bfloat16 --amp \
-    --sizes 518x518 364x644 --train-batch 8 --repeats 20 --warmup 3 "${official[@]}" \
+    --sizes 518x518 364x644 --train-batch 8 --repeats 20 --warmup 3 --peak-size 8192 "${official[@]}" \
     --json "$out/bench_da_$encoder.json"
 done
 data=$(mktemp -d)/ms

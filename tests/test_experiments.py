@@ -115,16 +115,30 @@ def test_quick_outputs(quick_results, name):
     assert img[..., :3].std() > 0.05  # not a blank canvas
 
 
+QUICK_RESULTS = os.path.join(REPO, "tests", "data", "quick_results.json")
+
+
 def test_quick_results_match_the_committed_ones(quick_results):
     """Regeneration check: every --quick table reproduces the numbers stored in
     tests/data/quick_results.json (a change of behaviour anywhere from the renderer to the
-    metrics moves them; float32 reductions on another CPU may move them by ~1e-6)."""
-    with open(os.path.join(REPO, "tests", "data", "quick_results.json")) as f:
+    metrics moves them; float32 reductions on another CPU may move them by ~1e-6).
+
+    After a change that is meant to move them (e.g. another summation order in a kernel, which
+    a few training steps amplify), IRDEPTH_WRITE_QUICK_RESULTS=1 rewrites the file from this
+    run instead of comparing (and the test is reported as skipped)."""
+    got_tables = {name: {row["label"]: {c: row["per_seed"]["0"][c] for c in record["columns"]}
+                         for row in record["rows"]}
+                  for name, (record, _) in quick_results.items()}
+    if os.environ.get("IRDEPTH_WRITE_QUICK_RESULTS") == "1":
+        with open(QUICK_RESULTS) as f:
+            made_by = json.load(f)["made_by"]
+        with open(QUICK_RESULTS, "w") as f:
+            json.dump({"made_by": made_by, "tables": got_tables}, f, indent=1)
+        pytest.skip(f"IRDEPTH_WRITE_QUICK_RESULTS=1: wrote {QUICK_RESULTS}")
+    with open(QUICK_RESULTS) as f:
         stored = json.load(f)["tables"]
     assert sorted(stored) == sorted(TABLES)
-    for name, (record, _) in quick_results.items():
-        got = {row["label"]: {c: row["per_seed"]["0"][c] for c in record["columns"]}
-               for row in record["rows"]}
+    for name, got in got_tables.items():
         assert got.keys() == stored[name].keys(), name
         for label, values in stored[name].items():
             assert got[label] == pytest.approx(values, rel=1e-3, abs=1e-4), (name, label)

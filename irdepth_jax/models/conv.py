@@ -63,8 +63,9 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
     if plain:
         return lax.conv_general_dilated(lhs, rhs, window_strides, padding, **kwargs)
     kh, kw = rhs.shape[:2]
-    pads = (lax.padtype_to_pads(lhs.shape[1:3], (kh, kw), window_strides, padding)
-            if isinstance(padding, str) else tuple(tuple(p) for p in padding))
+    if isinstance(padding, str):
+        padding = lax.padtype_to_pads(lhs.shape[1:3], (kh, kw), window_strides, padding)
+    pads = tuple(tuple(p) for p in padding)
     if (kh, kw) == (1, 1) and tuple(window_strides) == (1, 1) and pads == ((0, 0), (0, 0)):
         return jnp.einsum("bhwc,cd->bhwd", lhs, rhs[0, 0], precision=precision)
     out_pixels = lhs.shape[0] * (lhs.shape[1] + sum(pads[0]) - kh + 1) * (lhs.shape[2] + sum(pads[1]) - kw + 1)
