@@ -1,8 +1,10 @@
 """Test setup, before JAX starts: 4 fake CPU devices for the multi-device tests, and one XLA
 compilation cache per test run, shared by the tests and the CLI subprocesses they start (so each
-training step compiles once per run; a fresh directory keeps the run's time honest)."""
+training step compiles once per run; a fresh directory keeps the run's time honest). The trained
+runs many tests read are made once per session and shared by the pytest-xdist workers."""
 
 import atexit
+import json
 import os
 import pathlib
 import shutil
@@ -59,12 +61,32 @@ def _read_only(path, what):
                          f"trained_runs.copy_run first): {changed[:10]}")
 
 
+def _made_once(tmp_path_factory, name: str, make):
+    """`make(path)` run once per test session, whichever pytest-xdist worker asks first; the
+    others wait for it and take the same path (they share the session's temporary root). A
+    file lock orders them; a marker file says the result is complete."""
+    import fcntl
+
+    base = tmp_path_factory.getbasetemp()
+    # under xdist each worker has its own basetemp in the session's directory; without it the
+    # parent would be shared with earlier sessions
+    root = base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base
+    path, done = root / name, root / f"{name}.done"
+    with open(root / f"{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(path, ignore_errors=True)
+            make(path)
+            done.touch()
+    return path
+
+
 @pytest.fixture(scope="session")
 def synthetic_data(tmp_path_factory):
     """The shared synthetic dataset (`trained_runs.DATA`: 24 frames of 32x48, 12 labelled)."""
     from trained_runs import write_data
 
-    yield from _read_only(write_data(tmp_path_factory.mktemp("shared_data") / "ds"), "dataset")
+    yield from _read_only(_made_once(tmp_path_factory, "shared_data", write_data), "dataset")
 
 
 @pytest.fixture(scope="session")
@@ -73,8 +95,7 @@ def stage1_run(synthetic_data, tmp_path_factory):
     1 device, a checkpoint at the end of each phase)."""
     from trained_runs import train
 
-    work = tmp_path_factory.mktemp("shared_stage1") / "straight"
-    train("stage1", synthetic_data, work)
+    work = _made_once(tmp_path_factory, "shared_stage1", lambda w: train("stage1", synthetic_data, w))
     yield from _read_only(work, "Stage I run")
 
 
@@ -83,19 +104,25 @@ def stage2_run(synthetic_data, stage1_run, tmp_path_factory):
     """Workdir of the shared Stage II run: 2 steps on `synthetic_data` from `stage1_run`."""
     from trained_runs import train
 
-    work = tmp_path_factory.mktemp("shared_stage2") / "s2"
-    train("stage2", synthetic_data, work, "--stage1-checkpoint", stage1_run)
+    work = _made_once(tmp_path_factory, "shared_stage2", lambda w: train(
+        "stage2", synthetic_data, w, "--stage1-checkpoint", stage1_run))
     yield from _read_only(work, "Stage II run")
 
 
 @pytest.fixture(scope="session")
 def learned_run(tmp_path_factory):
     """(workdir, result) of `workflow.train_and_evaluate` on the shortened tiny config
-    (`trained_runs.LEARNING`): data/, stage1/, stage2/ (with eval_test.json)."""
+    (`trained_runs.LEARNING`): data/, stage1/, stage2/ (with eval_test.json); result: its
+    'before' and 'after' metrics."""
     from trained_runs import train_and_evaluate_learning
 
-    work = tmp_path_factory.mktemp("learned") / "run"
-    result = train_and_evaluate_learning(work)
+    def make(work):
+        result = train_and_evaluate_learning(work)
+        with open(f"{work}.json", "w") as f:
+            json.dump({k: result[k] for k in ("before", "after")}, f, default=float)
+
+    work = _made_once(tmp_path_factory, "learned_run", make)
+    with open(f"{work}.json") as f:
+        result = json.load(f)
     for path in _read_only(work, "learned run"):
         yield path, result
-

@@ -344,6 +344,7 @@ def _ms2_layout(root, frames: int = 11, size=(32, 48)):
     return root
 
 
+@pytest.mark.slow  # about a minute on 2 cores; the MS2 reader and protocol have their own fast tests
 def test_the_tables_on_a_users_ms2_dataset(quick_cache, tmp_path):
     """--data MS2_ROOT: trained on its train list, evaluated with the MS2 protocol: every 10th
     frame of the three test lists, median-scaled, one group per test condition."""

@@ -7,7 +7,7 @@ import pathlib
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
 
 LAYERS = [
-    ("foundation", ["config", "configs", "errors", "fileio", "video", "compile_cache"]),
+    ("foundation", ["config", "configs", "errors", "fileio", "video", "compile_cache", "hostmem"]),
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
     ("losses and metrics", ["losses", "metrics"]),

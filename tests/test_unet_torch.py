@@ -198,7 +198,7 @@ def test_forward_matches(case, train):
                                flax_to_torch_state(variables)["bottleneck.bn1.running_var"])
 
 
-@pytest.mark.parametrize("case", ["tiny", "tiny-fixed-27x45"])
+@pytest.mark.parametrize("case", ["tiny", pytest.param("tiny-fixed-27x45", marks=pytest.mark.slow)])
 def test_float64_train_forward_and_gradients_match(case):
     """Train mode with float64 networks: outputs, running statistics and every parameter's
     gradient of the benchmark's Stage I loss."""
@@ -289,6 +289,7 @@ def test_sgd_step_matches():
         assert err <= 0.1 * np.abs(ref_step).max() + rounding, f"{key} step: max |diff| {err:.1e}"
 
 
+@pytest.mark.slow  # 25 s on 2 cores; the SGD step above checks the same train steps' update
 def test_adadelta_steps_match():
     """The benchmark's two AdaDelta train steps (optax.adadelta and torch.optim.Adadelta with
     `ADADELTA`), 2 steps (the second uses both running averages), in float64: AdaDelta's update
