@@ -98,27 +98,34 @@ class Worker:
                 else:
                     os.environ[k] = v
         child.close()
-        self.info = self._answer()
+        self._setup_name = setup.__name__
+        self.info = self._ask(None)
 
-    def _answer(self):
+    def _died(self) -> RuntimeError:
+        self._process.join(timeout=5)
+        code = self._process.exitcode
+        why = " (SIGKILL: out of memory? see dmesg)" if code == -9 else ""
+        return RuntimeError(f"benchmark worker {self._process.pid} ({self._setup_name}) died, "
+                            f"exit code {code}{why}")
+
+    def _ask(self, request):
         try:
+            if request is not None:
+                self._conn.send(request)
             status, value = self._conn.recv()
-        except EOFError:
-            raise RuntimeError(f"benchmark worker {self._process.pid} died "
-                               f"(exit code {self._process.exitcode})") from None
+        except (EOFError, BrokenPipeError):
+            raise self._died() from None
         if status == "error":
-            raise RuntimeError(f"benchmark worker failed:\n{value}")
+            raise RuntimeError(f"benchmark worker ({self._setup_name}) failed:\n{value}")
         return value
 
     def time(self, name: str) -> float:
         """Seconds of one call of `name`, measured in the child."""
-        self._conn.send(("time", name))
-        return self._answer()
+        return self._ask(("time", name))
 
     def result(self, name: str):
         """One call's result, as numpy arrays (a tree of them)."""
-        self._conn.send(("result", name))
-        return self._answer()
+        return self._ask(("result", name))
 
     def close(self) -> None:
         if self._process.is_alive():
@@ -227,9 +234,25 @@ def set_xla_threads(threads: int) -> None:
     os.environ["PJRT_NPROC"] = str(threads)
 
 
+def cpu_model() -> str:
+    """The CPU's model name and widest vector extension (Linux; '' elsewhere): the ratios
+    against torch differ between CPUs (AVX2-only vs AVX-512 machines), so reports say which."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            info = f.read()
+    except OSError:
+        return ""
+    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
+                 if line.startswith("model name")), "")
+    flags = set(next((line.split(":", 1)[1].split() for line in info.splitlines()
+                      if line.startswith("flags")), []))
+    vector = next((f for f in ("avx512f", "avx2", "avx") if f in flags), "")
+    return f"{name} ({vector})" if vector else name
+
+
 def versions() -> dict:
-    """jax's and (where installed) torch's versions, for a benchmark's report."""
-    found = {"jax": jax.__version__}
+    """jax's and (where installed) torch's versions and the CPU model, for a benchmark's report."""
+    found = {"jax": jax.__version__, "cpu_model": cpu_model()}
     try:
         import torch
     except ImportError:

@@ -321,7 +321,13 @@ def main(argv=None) -> dict:
                       + (f", torch {mm['torch_gflops']:.1f} GFLOP/s" if with_torch else ""))
                 print("times: medians per call (the whole batch); GFLOP/s and % peak: ours, from "
                       "XLA's FLOP count")
-                print()
+            r = results[-1]
+            print(f"{size[0]}x{size[1]} batch {batch}: forward {r['fwd_ours_ms']:.0f} ms"
+                  + (f" (torch {r['fwd_torch_ms']:.0f})" if with_torch else "")
+                  + f", train step {r['train_ours_ms']:.0f} ms"
+                  + (f" (torch {r['train_torch_ms']:.0f})" if with_torch else ""), flush=True)
+            write_json(args.json, {**summary, "results": results})  # kept if a later case fails
+    print()
     print_tables(results, summary["matmul_peak"]["xla_gflops"])
     summary.update(results=results)
     write_json(args.json, summary)

@@ -90,54 +90,58 @@ def test_two_processes_agree_with_one(tmp_path, four_devices):
 CLI = "import sys; from irdepth_jax.cli import main; sys.exit(main(sys.argv[1:]))"
 
 
-def _cli_processes(argvs, devices_per_process: int, tmp_path):
-    """Runs `irdepth` once per argv, concurrently, each process with `devices_per_process` CPU
-    devices; returns their outputs after all exit 0."""
-    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
-    env.update(JAX_PLATFORMS="cpu",
-               XLA_FLAGS=f"--xla_force_host_platform_device_count={devices_per_process}")
-    procs = [subprocess.Popen([sys.executable, "-c", CLI, *map(str, argv)], env=env, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-             for argv in argvs]
+def _cli_processes(runs, tmp_path, returncode=0):
+    """Runs `irdepth argv` for each (argv, CPU devices of that process) in `runs`, all at once;
+    returns their outputs after each exited with `returncode`."""
+    procs = []
+    for argv, devices in runs:
+        env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+        env.update(JAX_PLATFORMS="cpu", XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+        procs.append(subprocess.Popen([sys.executable, "-c", CLI, *map(str, argv)], env=env,
+                                      cwd=tmp_path, stdout=subprocess.PIPE,
+                                      stderr=subprocess.STDOUT, text=True))
     try:
         logs = [p.communicate(timeout=300)[0] for p in procs]
     finally:
         for p in procs:
             if p.poll() is None:
                 p.kill()
-    for argv, p, log in zip(argvs, procs, logs):
-        assert p.returncode == 0, f"{argv}:\n{log[-3000:]}"
+    for (argv, _), p, log in zip(runs, procs, logs):
+        assert p.returncode == returncode, f"{argv}:\n{log[-3000:]}"
     return logs
 
 
-@pytest.mark.slow  # ~3.5 min on 2 cores (three processes compile both Stage I phases cold)
 @pytest.mark.multidevice
 def test_cli_train_on_two_processes_equals_one_process_with_two_devices(synthetic_data, tmp_path):
     """README's cluster command on localhost: `irdepth train --coordinator ... --num-processes 2
-    --process-id i` (one CPU device each, one shared workdir) trains Stage I to the same losses
-    and weights as one process with `--devices 2`."""
+    --process-id i` (one CPU device each, one shared workdir) trains Stage I-1 to the same losses
+    and weights as one process with `--devices 2`. The three processes run at once, and stop
+    (`--stop-at`) after I-1, whose checkpoint is compared: I-2 runs the same parallel code."""
     from test_cli import final_params, read_metrics
     from trained_runs import QUICK
 
+    from irdepth_jax.cli import EXIT_INTERRUPTED
+
     quick = [a for a in QUICK if a not in ("--devices", "1")]
-    common = ["train", "stage1", "--data", synthetic_data, "--steps", 2, *quick]
-    one = tmp_path / "one_process"
-    _cli_processes([[*common, "--workdir", one, "--devices", 2]], 2, tmp_path)
-    two = tmp_path / "two_processes"
+    common = ["train", "stage1", "--data", synthetic_data, "--steps", 2, "--stop-at", 2, *quick]
+    one, two = tmp_path / "one_process", tmp_path / "two_processes"
     port = free_port()
-    logs = _cli_processes([[*common, "--workdir", two, "--coordinator", f"localhost:{port}",
-                            "--num-processes", 2, "--process-id", i] for i in range(2)], 1, tmp_path)
+    logs = _cli_processes(
+        [([*common, "--workdir", two, "--coordinator", f"localhost:{port}", "--num-processes", 2,
+           "--process-id", i], 1) for i in range(2)]
+        + [([*common, "--workdir", one, "--devices", 2], 2)], tmp_path, EXIT_INTERRUPTED)
     assert "irdepth: stage1: parallel: shard_map over 2 devices (2 processes x 1)" in logs[0], logs[0]
+    assert "stopped at step 2: stage1_i1 checkpoint at step 2" in logs[0], logs[0]
 
     rows_one, rows_two = read_metrics(one), read_metrics(two)
     assert [r.get("step") for r in rows_two] == [r.get("step") for r in rows_one]
     losses = [(r, s) for r, s in zip(rows_one, rows_two) if "loss" in r]
-    assert len(losses) == 4  # 2 steps of I-1, 2 of I-2
+    assert len(losses) == 2  # 2 steps of I-1
     for ref, got in losses:
         for key in ("loss", "recon", "grad_norm"):
             np.testing.assert_allclose(got[key], ref[key], rtol=1e-5, err_msg=key)
-    ref_model, _ = final_params(one)
-    got_model, _ = final_params(two)
+    ref_model, _ = final_params(one, "stage1_i1")
+    got_model, _ = final_params(two, "stage1_i1")
     ref_leaves = jax.tree_util.tree_leaves_with_path(ref_model)
     got_leaves = jax.tree.leaves(got_model)
     assert len(ref_leaves) == len(got_leaves)
