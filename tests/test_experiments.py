@@ -121,7 +121,7 @@ QUICK_RESULTS = os.path.join(REPO, "tests", "data", "quick_results.json")
 def test_quick_results_match_the_committed_ones(quick_results):
     """Regeneration check: every --quick table reproduces the numbers stored in
     tests/data/quick_results.json (a change of behaviour anywhere from the renderer to the
-    metrics moves them; float32 reductions on another CPU may move them by ~1e-6).
+    metrics moves them; another CPU moves them a little, see below).
 
     After a change that is meant to move them (e.g. another summation order in a kernel, which
     a few training steps amplify), IRDEPTH_WRITE_QUICK_RESULTS=1 rewrites the file from this
@@ -138,10 +138,17 @@ def test_quick_results_match_the_committed_ones(quick_results):
     with open(QUICK_RESULTS) as f:
         stored = json.load(f)["tables"]
     assert sorted(stored) == sorted(TABLES)
+    # XLA:CPU's float32 kernels sum in another order on another vector width (AVX2 / AVX-512),
+    # and the quick runs' few training steps amplify that: two regenerations, on an AVX-512 and
+    # an AVX2 machine, differed by a median 0.14 % and at most 2.6 % per figure. So: each figure
+    # within 5 %, and the median change of all within 0.5 % (a change of behaviour moves many).
+    changes = []
     for name, got in got_tables.items():
         assert got.keys() == stored[name].keys(), name
         for label, values in stored[name].items():
-            assert got[label] == pytest.approx(values, rel=1e-3, abs=1e-4), (name, label)
+            assert got[label] == pytest.approx(values, rel=0.05, abs=1e-4), (name, label)
+            changes += [abs(got[label][c] - v) / max(abs(v), 1e-4) for c, v in values.items()]
+    assert np.median(changes) < 0.005, np.median(changes)
 
 
 def _row(record, series, group="all"):
