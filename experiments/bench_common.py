@@ -242,10 +242,11 @@ def cpu_model() -> str:
             info = f.read()
     except OSError:
         return ""
-    name = next((line.split(":", 1)[1].strip() for line in info.splitlines()
-                 if line.startswith("model name")), "")
-    flags = set(next((line.split(":", 1)[1].split() for line in info.splitlines()
-                      if line.startswith("flags")), []))
+    fields = {}  # the first processor's "key : value" lines
+    for line in info.splitlines():
+        key, _, value = line.partition(":")
+        fields.setdefault(key.strip(), value.strip())
+    name, flags = fields.get("model name", ""), set(fields.get("flags", "").split())
     vector = next((f for f in ("avx512f", "avx2", "avx") if f in flags), "")
     return f"{name} ({vector})" if vector else name
 

@@ -1,37 +1,28 @@
 """Kernel gradient of a 3x3 stride-1 NHWC convolution: XLA:CPU's own vs `models.conv`'s row-block
-loop, on this machine (jitted, medians of 7 calls after one warm-up).
+loop, on this machine (jitted; the two interleaved, medians of 7 calls after one warm-up).
 
     python experiments/bench_conv_grad.py
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
 XLA's ms, ours ms. Measured 2026-12-02 on a 2-core AMD EPYC (AVX2): (4, 256, 320, 64, 32)
-2,867 vs 338 ms; (1, 256, 320, 32, 32) 368 vs 41 ms; (2, 518, 518, 32, 32) 2,742 vs 431 ms;
-(4, 128, 160, 128, 64) 2,536 vs 226 ms. Use it to re-tune `conv.BLOCK_PIXELS` and
+2,529 vs 341 ms; (1, 256, 320, 32, 32) 261 vs 37 ms; (2, 518, 518, 32, 32) 3,052 vs 209 ms;
+(4, 128, 160, 128, 64) 3,079 vs 291 ms. Use it to re-tune `conv.BLOCK_PIXELS` and
 `conv.MIN_LOOP_PIXELS` on another CPU.
 """
 
-import time
+import functools
 
 import jax
 import numpy as np
 from jax import lax
 
+from experiments.bench_common import interleaved_medians, wall_seconds
 from irdepth_jax.hostmem import keep_freed_memory
 from irdepth_jax.models import conv
 
 SHAPES = [(4, 256, 320, 64, 32), (1, 256, 320, 32, 32), (2, 518, 518, 32, 32),
           (4, 128, 160, 128, 64)]
 """(batch, height, width, C_in, C_out) of the timed layers."""
-
-
-def median_ms(fn, *args, repeats: int = 7) -> float:
-    fn(*args).block_until_ready()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn(*args).block_until_ready()
-        times.append(time.perf_counter() - start)
-    return 1e3 * float(np.median(times))
 
 
 def kernel_gradient_fn(conv_fn):
@@ -52,8 +43,11 @@ def main() -> None:
     for b, h, w, ci, co in SHAPES:
         args = (rng.random((b, h, w, ci), np.float32), rng.random((3, 3, ci, co), np.float32),
                 rng.random((b, h, w, co), np.float32))
-        print(f"{(b, h, w, ci, co)}: XLA {median_ms(xla, *args):.0f} ms, "
-              f"ours {median_ms(ours, *args):.0f} ms", flush=True)
+        calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours)]
+        xla_s, ours_s = interleaved_medians([functools.partial(wall_seconds, c) for c in calls],
+                                            repeats=7, warmup=1)
+        print(f"{(b, h, w, ci, co)}: XLA {1e3 * xla_s:.0f} ms, ours {1e3 * ours_s:.0f} ms",
+              flush=True)
 
 
 if __name__ == "__main__":
