@@ -14,7 +14,7 @@ from da_params import random_params
 from ms2_layout import official_sequences, partial_ms2
 
 from irdepth_jax import cli, evaluators
-from irdepth_jax.config import get_config
+from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import DataSource
 from irdepth_jax.models.depth_anything import depth_anything_config
 from irdepth_jax.train import phase, runlog
@@ -48,9 +48,11 @@ def read_metrics(workdir):
             if r.get("kind") != "info"]
 
 
-def final_params(workdir, phase="stage1_i2"):
+def final_params(workdir, phase="stage1_i2", overrides=()):
+    """(model variables, meta) of the last checkpoint of `phase` in a run of the tiny preset
+    with `overrides`."""
     model, meta = restore_model(os.path.join(workdir, "checkpoints", phase), phase,
-                                init_unet(get_config("tiny")))
+                                init_unet(apply_overrides(get_config("tiny"), list(overrides))))
     return model, meta
 
 

@@ -36,8 +36,10 @@ SAVE_EVERY_STEP = [*QUICK, "checkpoint_every=1"]
 
 
 @pytest.fixture(scope="module")
-def data(synthetic_data):
-    """The session's shared dataset (conftest.py), test_cli's: the compiled steps are shared."""
+def data(synthetic_data, stage1_run):
+    """The session's shared dataset (conftest.py), test_cli's; the shared Stage I run is asked
+    for first so that its train steps are in the session's compilation cache (see
+    test_cli_guards.data)."""
     return synthetic_data
 
 

@@ -21,8 +21,10 @@ from irdepth_jax.train.workdir_lock import LOCK_NAME
 
 
 @pytest.fixture(scope="module")
-def data(synthetic_data):
-    """The session's shared dataset (conftest.py), test_cli's: the compiled steps are shared."""
+def data(synthetic_data, stage1_run):
+    """The session's shared dataset (conftest.py), test_cli's. Asking for the shared Stage I
+    run too means its train steps are in the session's compilation cache before the tests here
+    train on the same data (one compile instead of two)."""
     return synthetic_data
 
 
