@@ -4,10 +4,14 @@ loop, on this machine (jitted; the two interleaved, medians of 7 calls after one
     python experiments/bench_conv_grad.py
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
-XLA's ms, ours ms. Measured 2026-12-02 on a 2-core AMD EPYC (AVX2): (4, 256, 320, 64, 32)
-2,529 vs 341 ms; (1, 256, 320, 32, 32) 261 vs 37 ms; (2, 518, 518, 32, 32) 3,052 vs 209 ms;
-(4, 128, 160, 128, 64) 3,079 vs 291 ms. Use it to re-tune `conv.BLOCK_PIXELS` and
-`conv.MIN_LOOP_PIXELS` on another CPU.
+XLA's ms, ours ms and which of `conv.kernel_gradient`'s three ways ours took. Measured 2026-12-03
+on a 2-core Intel Xeon (AVX-512): (4, 256, 320, 64, 32) 360 vs 232 ms (row blocks);
+(1, 256, 320, 32, 32) 50 vs 32 ms; (2, 518, 518, 32, 32) 362 vs 181 ms; (4, 128, 160, 128, 64)
+336 vs 136 ms; (1, 64, 80, 256, 128) 51 vs 26 ms (by tap); (1, 16, 20, 512, 512) 7.9 vs 7.2 ms
+(im2col); (1, 256, 320, 1, 32) 2.0 vs 1.6 ms (im2col). On 2026-12-02's 2-core AMD EPYC (AVX2),
+before the channels-first layouts: (4, 256, 320, 64, 32) 2,529 vs 341 ms; (2, 518, 518, 32, 32)
+3,052 vs 209 ms. Use it to re-tune `conv.BLOCK_PIXELS`, `conv.MIN_LOOP_PIXELS`,
+`conv.IM2COL_BYTES` and `conv.CHANNELS_FIRST_MAX_OUT` on another CPU.
 """
 
 import functools
@@ -21,7 +25,7 @@ from irdepth_jax.hostmem import keep_freed_memory
 from irdepth_jax.models import conv
 
 SHAPES = [(4, 256, 320, 64, 32), (1, 256, 320, 32, 32), (2, 518, 518, 32, 32),
-          (4, 128, 160, 128, 64)]
+          (4, 128, 160, 128, 64), (1, 64, 80, 256, 128), (1, 16, 20, 512, 512), (1, 256, 320, 1, 32)]
 """(batch, height, width, C_in, C_out) of the timed layers."""
 
 
@@ -46,7 +50,8 @@ def main() -> None:
         calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours)]
         xla_s, ours_s = interleaved_medians([functools.partial(wall_seconds, c) for c in calls],
                                             repeats=7, warmup=1)
-        print(f"{(b, h, w, ci, co)}: XLA {1e3 * xla_s:.0f} ms, ours {1e3 * ours_s:.0f} ms",
+        method = conv.kernel_gradient_method((b, h, w, ci), (b, h, w, co), (3, 3))
+        print(f"{(b, h, w, ci, co)}: XLA {1e3 * xla_s:.1f} ms, ours ({method}) {1e3 * ours_s:.1f} ms",
               flush=True)
 
 

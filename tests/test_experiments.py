@@ -63,9 +63,9 @@ class QuickTables:
 
     def __getitem__(self, name: str) -> tuple[dict, str]:
         if name not in self.done:
-            out = str(self.out_root / name)
-            load_script(name).main(load_script(name).TABLE, ["--quick", "--cache", self.cache,
-                                                             "--out", out, "--no-progress"])
+            out, script = str(self.out_root / name), load_script(name)
+            script.main(script.TABLE, ["--quick", "--cache", self.cache, "--out", out,
+                                       "--no-progress"])
             with open(os.path.join(out, "results.json")) as f:
                 self.done[name] = (json.load(f), out)
         return self.done[name]
@@ -445,7 +445,7 @@ def test_table4_controls(quick_results):
 @pytest.mark.slow
 def test_pipeline_figure_quick(quick_results, quick_cache, tmp_path):
     """experiments/pipeline_figure.py draws the quick HSV run (cached by the tables)."""
-    quick_results["table1_preprocessing"]
+    quick_results["table1_preprocessing"]  # trains (or finds) the quick HSV run in the cache
     out = tmp_path / "pipeline.png"
     load_script("pipeline_figure").main(["--quick", "--cache", quick_cache, "--out", str(out)])
     import matplotlib.image

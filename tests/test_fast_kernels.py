@@ -1,8 +1,9 @@
 """The CPU performance kernels against independent references, under jit, on tiny shapes.
 
-`irdepth_jax.models.conv`: `Conv` against `flax.linen.Conv` (parameters, forward, gradients; the
-row-block kernel-gradient loop above `MIN_LOOP_PIXELS` and XLA's below it, the 1x1 einsum, the
-stride-2 fallback), `kernel_gradient` against autodiff of `lax.conv_general_dilated`,
+`irdepth_jax.models.conv`: `Conv` against `flax.linen.Conv` (parameters, forward, gradients; each
+of the kernel gradient's three ways, the 1x1 einsum, the stride-2 fallback), `kernel_gradient`'s
+im2col, per-tap and row-block (both layouts) ways and `input_gradient` against autodiff of
+`lax.conv_general_dilated`,
 `upsample_by_matmul` against its formula in numpy loops, `ConvTranspose` against
 `flax.linen.ConvTranspose`.
 
@@ -12,6 +13,7 @@ against `jax.nn.gelu` and the hand formula, `gradient_fence` / `after`, and the 
 Anything V2's parameter gradients against the same model built from plain autodiff functions.
 """
 
+import functools
 import math
 
 import flax.linen as nn
@@ -64,27 +66,31 @@ CONV_CASES = {
     "1x1_explicit": ((2, 9, 11, 3), dict(features=4, kernel_size=(1, 1), padding=((0, 0), (0, 0)))),
     "1x1_same_large": ((1, 130, 130, 3), dict(features=4, kernel_size=(1, 1))),
     "5x5_asym_small": ((1, 12, 10, 3), dict(features=4, kernel_size=(5, 5), padding=((2, 1), (0, 3)))),
-    # 1 x 129 x 129 output pixels >= MIN_LOOP_PIXELS: the row-block kernel-gradient loop
+    # 1 x 129 x 129 output pixels >= MIN_LOOP_PIXELS: the row-block kernel-gradient loop (the
+    # test makes the im2col budget zero for the cases named *_loop and *_by_tap)
     "5x5_asym_loop": ((1, 130, 130, 3), dict(features=4, kernel_size=(5, 5), padding=((2, 1), (0, 3)))),
     "3x3_same_loop": ((1, 130, 130, 3), dict(features=4, kernel_size=(3, 3), padding="SAME", use_bias=False)),
-    # 100 x 100 output pixels < MIN_LOOP_PIXELS: XLA's own gradient
-    "3x3_same_below_threshold": ((1, 100, 100, 3), dict(features=4, kernel_size=(3, 3), padding="SAME")),
+    # 100 x 100 output pixels < MIN_LOOP_PIXELS: one matmul per tap
+    "3x3_same_by_tap": ((1, 100, 100, 3), dict(features=4, kernel_size=(3, 3), padding="SAME")),
     # stride 2 falls back to lax.conv_general_dilated
     "3x3_stride2": ((1, 130, 130, 3), dict(features=4, kernel_size=(3, 3), strides=(2, 2), padding=((1, 1), (1, 1)))),
     "1x1_stride2": ((2, 9, 11, 3), dict(features=4, kernel_size=(1, 1), strides=(2, 2))),
 }
 
 
-def output_pixels(shape, kwargs):
+def output_size(shape, kwargs):
+    """(H', W') of a stride-1 conv of a (B, H, W, C) input."""
     kh, kw = kwargs["kernel_size"]
     padding = kwargs.get("padding", "SAME")
     pads = lax.padtype_to_pads(shape[1:3], (kh, kw), (1, 1), padding) if isinstance(padding, str) else padding
-    return shape[0] * (shape[1] + sum(pads[0]) - kh + 1) * (shape[2] + sum(pads[1]) - kw + 1)
+    return shape[1] + sum(pads[0]) - kh + 1, shape[2] + sum(pads[1]) - kw + 1
 
 
 @pytest.mark.parametrize("case", list(CONV_CASES))
-def test_conv_matches_flax_conv(case):
+def test_conv_matches_flax_conv(case, monkeypatch):
     shape, kwargs = CONV_CASES[case]
+    if case.endswith(("_loop", "_by_tap")):
+        monkeypatch.setattr(conv, "IM2COL_BYTES", 0)
     ours, flax_conv = conv.Conv(**kwargs), nn.Conv(**kwargs)
     x = random(shape, 1)
     key = jax.random.key(3)
@@ -111,12 +117,15 @@ def test_conv_matches_flax_conv(case):
     assert_close(grads, grads_ref, 1e-5, "gradients")
 
     # the case exercises the path it is named for: the kernel gradient's fori_loop (a scan)
-    # exactly when a stride-1 k x k (k > 1) conv has at least MIN_LOOP_PIXELS output pixels
+    # exactly for the cases named *_loop; the im2col or one matmul per tap for the others
     if not one_by_one:
-        loop = "strides" not in kwargs and output_pixels(shape, kwargs) >= conv.MIN_LOOP_PIXELS
-        assert loop == case.endswith("_loop")
         jaxpr = str(jax.make_jaxpr(jax.grad(loss_fn(ours), (0, 1)))(params, x))
-        assert ("scan[" in jaxpr or "while[" in jaxpr) == loop
+        assert ("scan[" in jaxpr or "while[" in jaxpr) == case.endswith("_loop")
+        if "strides" not in kwargs:
+            expected = ("row_blocks" if case.endswith("_loop") else
+                        "by_tap" if case.endswith("_by_tap") else "im2col")
+            out_shape = (shape[0], *output_size(shape, kwargs), kwargs["features"])
+            assert conv.kernel_gradient_method(shape, out_shape, kwargs["kernel_size"]) == expected
 
 
 @pytest.mark.parametrize("padding", [((0, 0), (0, 0)), "SAME", "VALID"])
@@ -155,14 +164,38 @@ def test_kernel_gradient_matches_autodiff(kernel_size, pads):
         return lax.conv_general_dilated(x, k, (1, 1), pads, dimension_numbers=NHWC)
 
     want = jax.jit(lambda g: jax.vjp(conv_of_kernel, kernel)[1](g)[0])(g)
-    kernel_gradient = jax.jit(conv.kernel_gradient, static_argnums=(2, 3, 4))
+    static = dict(static_argnums=(2, 3))
+    ways = {"kernel_gradient": jax.jit(conv.kernel_gradient, static_argnums=(2, 3, 4)),
+            "im2col": jax.jit(conv.kernel_gradient_im2col, **static),
+            "by_tap": jax.jit(conv.kernel_gradient_by_tap, **static)}
+    loop = jax.jit(conv.kernel_gradient_row_blocks, static_argnums=(2, 3, 4, 5))
     # rows per block: 1 (block_pixels 1), 3 (not dividing out_h), all in one block with zero rows
     for block_pixels in (1, 6 * out_w, 10_000):
         rows = max(1, round(block_pixels / (2 * out_w)))
         assert block_pixels != 6 * out_w or out_h % rows
-        got = kernel_gradient(x, g, kernel_size, pads, block_pixels)
+        for channels_first in (True, False):
+            ways[f"row_blocks, {block_pixels} pixels per block, channels_first={channels_first}"] = (
+                functools.partial(loop, block_pixels=block_pixels, channels_first=channels_first))
+    for name, way in ways.items():
+        got = way(x, g, kernel_size, pads)
         assert got.shape == kernel.shape and got.dtype == jnp.float32
-        assert_close(got, want, 1e-5, f"kernel gradient, {block_pixels} pixels per block")
+        assert_close(got, want, 1e-5, f"kernel gradient, {name}")
+
+
+@pytest.mark.parametrize("kernel_size, pads", [((3, 3), ((1, 1), (1, 1))), ((3, 2), ((2, 0), (0, 1))),
+                                               ((5, 5), ((2, 1), (0, 3))), ((3, 3), ((3, 0), (1, 4)))])
+def test_input_gradient_matches_autodiff(kernel_size, pads):
+    """The flipped-kernel convolution, and XLA's own where a padding exceeds kh - 1 (last case)."""
+    kh, kw = kernel_size
+    x = random((2, 11, 7, 3), 1)
+    kernel = random((kh, kw, 3, 4), 2)
+    out_h, out_w = 11 + sum(pads[0]) - kh + 1, 7 + sum(pads[1]) - kw + 1
+    g = random((2, out_h, out_w, 4), 3)
+    want = jax.jit(lambda g: jax.vjp(
+        lambda x: lax.conv_general_dilated(x, kernel, (1, 1), pads, dimension_numbers=NHWC), x)[1](g)[0])(g)
+    got = jax.jit(conv.input_gradient, static_argnums=(2,))(g, kernel, pads)
+    assert got.shape == x.shape
+    assert_close(got, want, 1e-5, "input gradient")
 
 
 # ---------------------------------------------------------------------------- upsample / ConvTranspose

@@ -1,19 +1,20 @@
 """Convolutions for XLA:CPU: `nn.Conv` with the same parameters, init and forward, and a
-weight gradient computed in row blocks.
+weight gradient computed as matmuls.
 
 XLA:CPU differentiates a convolution's kernel as one convolution whose window is the whole
 image (batch as the feature axis), after transposing both operands to that layout; its
 library kernels run it 3-5x slower than the forward pass (measured, 2 x 518 x 518 x 32 -> 32
 channels, 3x3: forward 62 ms, kernel gradient 330 ms; PyTorch's oneDNN about 4x faster). Here
-the kernel gradient of a stride-1 k x k convolution is a loop over blocks of `rows` output rows:
-each block's k*k shifted input windows are concatenated along the channels (an im2col of a few
-rows, which stays in cache) and contracted with the block's output gradient in one matmul,
-(k*k*C_in, pixels) @ (pixels, C_out), summed over the blocks: 110 ms for the same layer.
+the kernel gradient of a stride-1 k x k convolution is an im2col matmul, (k*k*C_in, pixels) @
+(pixels, C_out): the k*k shifted input windows concatenated along the channels. Large layers
+do it in a loop over blocks of output rows whose im2col stays in cache, summing the blocks'
+products (110 ms for the layer above); small ones build the whole im2col; deep ones with few
+pixels and many channels sum one matmul per tap instead (`kernel_gradient` says when).
 
 A 1x1 convolution is a matmul over the channel axis (faster than XLA:CPU's convolution in both
-directions, and its kernel gradient is a matmul too). The input gradient of every convolution is
-XLA's own. Off CPU (GPU / TPU, whose convolution libraries are fast both ways) and on small
-inputs, `conv_general_dilated` is `lax.conv_general_dilated`.
+directions, and its kernel gradient is a matmul too). The input gradient is a convolution with the
+flipped kernel (`input_gradient`). Off CPU (GPU / TPU, whose convolution libraries are fast both ways)
+`conv_general_dilated` is `lax.conv_general_dilated`.
 """
 
 from __future__ import annotations
@@ -27,13 +28,27 @@ from jax import lax
 
 BLOCK_PIXELS = 2048
 """Output pixels (batch x rows x width) per block of the kernel-gradient loop: its im2col block
-(k*k*C_in x BLOCK_PIXELS floats, 2.4 MB for 3x3 x 32 channels) stays in cache. Measured on a 2-core
-x86 CPU for 2-4 images of 256x320 to 518x518 with 32-64 channels: 1000-2600 pixels per block
-are within 10 % of each other, single rows of 300 pixels 1.5-2x slower."""
+(k*k*C_in x BLOCK_PIXELS floats, 2.4 MB for 3x3 x 32 channels) stays in cache. Measured on 2-core
+x86 CPUs for 1-4 images of 64x80 to 518x518 with 32-256 channels: 1000-3000 pixels per block
+are within 10 % of each other (except 3072 for 256 -> 128 channels at 4 x 64 x 80, 20 % slower;
+the `paper` UNet's train step at 256x320 on an AVX-512 Xeon: 1.72-1.82 s at 2048-4096, 1.89 s at
+8192), single rows of 300 pixels 1.5-2x slower."""
 
 MIN_LOOP_PIXELS = 16384
-"""Below this many output pixels (batch x height x width) the kernel gradient is XLA's: the loop
-would have few blocks and its set-up would not pay."""
+"""Below this many output pixels (batch x height x width) the kernel gradient is not the loop,
+which would have few blocks and whose set-up would not pay."""
+
+IM2COL_BYTES = 16 * 2**20
+"""Largest float32 im2col (kh*kw*C_in x output pixels) that the kernel gradient builds whole
+(measured, 3x3: 1 -> 32 channels at 256x320, 2.5 ms vs 5.3 ms in the loop; 512 -> 512 at 16x20,
+7.8 ms vs XLA's 12.0 ms and torch's 7.0 ms)."""
+
+CHANNELS_FIRST_MAX_OUT = 64
+"""The loop lays each block's im2col out channels first, (k*k*C_in, pixels), when the layer has
+at most this many output channels: XLA:CPU's matmul with the contraction axis minor on the left
+ran 3-4x faster than with it leading (81920 x 288 x 32: 12 vs 42 ms), worth the transpose of
+the input for narrow layers (1 x 256 x 320, 64 -> 32: 53 vs 68 ms), not for wide ones (4 x 64
+x 80, 256 -> 128: 111 vs 94 ms)."""
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
 
@@ -68,8 +83,7 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
     pads = tuple(tuple(p) for p in padding)
     if (kh, kw) == (1, 1) and tuple(window_strides) == (1, 1) and pads == ((0, 0), (0, 0)):
         return jnp.einsum("bhwc,cd->bhwd", lhs, rhs[0, 0], precision=precision)
-    out_pixels = lhs.shape[0] * (lhs.shape[1] + sum(pads[0]) - kh + 1) * (lhs.shape[2] + sum(pads[1]) - kw + 1)
-    if tuple(window_strides) != (1, 1) or out_pixels < MIN_LOOP_PIXELS:
+    if tuple(window_strides) != (1, 1):
         return lax.conv_general_dilated(lhs, rhs, window_strides, padding, **kwargs)
     return _conv_stride1(lhs, rhs, pads, precision)
 
@@ -90,44 +104,127 @@ def _conv_stride1_fwd(x, kernel, pads, precision):
 
 def _conv_stride1_bwd(pads, precision, residuals, g):
     x, kernel = residuals
-    dx = jax.vjp(lambda x: _plain_conv(x, kernel, pads, precision), x)[1](g)[0]
-    return dx, kernel_gradient(x, g, kernel.shape[:2], pads).astype(kernel.dtype)
+    dkernel = kernel_gradient(x, g, kernel.shape[:2], pads).astype(kernel.dtype)
+    return input_gradient(g, kernel, pads, precision), dkernel
+
+
+def input_gradient(g, kernel, pads, precision=None):
+    """Gradient of a stride-1 convolution's input: (B, H', W', C_out) output gradient and its
+    (kh, kw, C_in, C_out) kernel -> (B, H, W, C_in), the convolution of g with the kernel flipped
+    in space and transposed in its channels. That kernel is made before the convolution, apart
+    from it (an optimization barrier): XLA's own gradient transposes it inside the convolution's
+    YNNPACK fusion, measured up to 30 % slower (1 x 256 x 320, 32 -> 32 channels: 12.4 vs 8.7 ms).
+    Paddings over kh - 1 (the output smaller than the padding) are XLA's own."""
+    kh, kw = kernel.shape[:2]
+    (top, bottom), (left, right) = pads
+    if max(top, bottom) > kh - 1 or max(left, right) > kw - 1:
+        x_shape = (g.shape[0], g.shape[1] - top - bottom + kh - 1, g.shape[2] - left - right + kw - 1,
+                   kernel.shape[2])
+        return jax.vjp(lambda x: _plain_conv(x, kernel, pads, precision), jnp.zeros(x_shape, g.dtype))[1](g)[0]
+    flipped = lax.optimization_barrier(kernel[::-1, ::-1].transpose(0, 1, 3, 2))
+    return _plain_conv(g, flipped, ((kh - 1 - top, kh - 1 - bottom), (kw - 1 - left, kw - 1 - right)),
+                       precision)
 
 
 _conv_stride1.defvjp(_conv_stride1_fwd, _conv_stride1_bwd)
 
 
 def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int = BLOCK_PIXELS):
-    """Gradient of a stride-1 convolution's kernel, in blocks of output rows (module docstring).
+    """Gradient of a stride-1 convolution's kernel, by whichever of the three ways below was the
+    fastest for the layer's size on XLA:CPU (`experiments/bench_conv_grad.py`): one
+    channels-first im2col matmul when its im2col is at most `IM2COL_BYTES`, else a sum of one
+    matmul per kernel tap below `MIN_LOOP_PIXELS` output pixels, else the row-block loop.
 
     Args:
       x: (B, H, W, C_in) the convolution's input.
       g: (B, H', W', C_out) the gradient of its output, H' = H + pad_h - kh + 1 (W' likewise).
       kernel_size: (kh, kw).
       pads: ((top, bottom), (left, right)) zero padding of x.
-      block_pixels: output pixels per block (rounded to whole rows, at least one).
+      block_pixels: output pixels per block of the loop (rounded to whole rows, at least one).
     Returns:
-      (kh, kw, C_in, C_out) float32: sum over b, i, j of x_pad[b, i + p, j + q, :] outer g[b, i, j, :].
+      (kh, kw, C_in, C_out) float32 (float64 for float64 operands): sum over b, i, j of
+      x_pad[b, i + p, j + q, :] outer g[b, i, j, :].
     """
+    method = kernel_gradient_method(x.shape, g.shape, kernel_size)
+    if method == "im2col":
+        return kernel_gradient_im2col(x, g, kernel_size, pads)
+    if method == "by_tap":
+        return kernel_gradient_by_tap(x, g, kernel_size, pads)
+    return kernel_gradient_row_blocks(x, g, kernel_size, pads, block_pixels,
+                                      channels_first=g.shape[-1] <= CHANNELS_FIRST_MAX_OUT)
+
+
+def _accumulator(x, g):
+    """The kernel gradient's dtype: float32, or float64 where an operand is."""
+    return jnp.promote_types(jnp.promote_types(x.dtype, g.dtype), jnp.float32)
+
+
+def kernel_gradient_method(x_shape, g_shape, kernel_size) -> str:
+    """Which way `kernel_gradient` computes a layer's: 'im2col', 'by_tap' or 'row_blocks'.
+    x_shape (B, H, W, C_in), g_shape (B, H', W', C_out), kernel_size (kh, kw)."""
+    out_pixels = g_shape[0] * g_shape[1] * g_shape[2]
+    if kernel_size[0] * kernel_size[1] * x_shape[-1] * out_pixels * 4 <= IM2COL_BYTES:
+        return "im2col"
+    return "by_tap" if out_pixels < MIN_LOOP_PIXELS else "row_blocks"
+
+
+def _channels_first_taps(x, out_shape, kernel_size, pads):
+    """The kh * kw shifted windows of the zero-padded x, channels first: a list of
+    (C_in, B, H', W') arrays in (p, q) order, for out_shape = (H', W')."""
+    (kh, kw), (out_h, out_w) = kernel_size, out_shape
+    x_pad = jnp.pad(x.transpose(3, 0, 1, 2), ((0, 0), (0, 0)) + tuple(pads))
+    return [x_pad[:, :, p:p + out_h, q:q + out_w] for p in range(kh) for q in range(kw)]
+
+
+def kernel_gradient_im2col(x, g, kernel_size, pads):
+    """`kernel_gradient` as one matmul, (kh*kw*C_in, B*H'*W') @ (B*H'*W', C_out). The im2col is
+    built channels first: XLA:CPU's matmul contracting the leading axis of both operands (the
+    pixel-major layout) ran 3-5x slower than with the pixels minor on the left."""
+    kh, kw = kernel_size
+    patches = jnp.concatenate(_channels_first_taps(x, g.shape[1:3], kernel_size, pads), axis=0)
+    total = jnp.einsum("kbhw,bhwd->kd", patches, g, preferred_element_type=_accumulator(x, g))
+    return total.reshape(kh, kw, x.shape[-1], g.shape[-1])
+
+
+def kernel_gradient_by_tap(x, g, kernel_size, pads):
+    """`kernel_gradient` as one (C_in, B*H'*W') @ (B*H'*W', C_out) matmul per kernel tap: for
+    deep layers (few pixels, many channels) no im2col copy kh*kw times the input."""
+    kh, kw = kernel_size
+    taps = [jnp.einsum("cbhw,bhwd->cd", window, g, preferred_element_type=_accumulator(x, g))
+            for window in _channels_first_taps(x, g.shape[1:3], kernel_size, pads)]
+    return jnp.stack(taps).reshape(kh, kw, x.shape[-1], g.shape[-1])
+
+
+def kernel_gradient_row_blocks(x, g, kernel_size, pads, block_pixels: int = BLOCK_PIXELS,
+                               channels_first: bool = True):
+    """`kernel_gradient` as a loop over blocks of output rows (module docstring), each block's
+    im2col laid out (kh*kw*C_in, pixels) when channels_first, else (pixels, kh*kw*C_in)."""
     kh, kw = kernel_size
     b, out_h, out_w, c_out = g.shape
     c_in = x.shape[-1]
     rows = max(1, round(block_pixels / (b * out_w)))
     blocks = -(-out_h // rows)
     extra = blocks * rows - out_h  # zero rows: they add nothing to the sum
-    x_pad = jnp.pad(x, ((0, 0), (pads[0][0], pads[0][1] + extra), pads[1], (0, 0)))
+    pad_rows = (pads[0][0], pads[0][1] + extra)
+    if channels_first:
+        x_pad = jnp.pad(x.transpose(3, 0, 1, 2), ((0, 0), (0, 0), pad_rows, pads[1]))
+        row_axis, tap_axis, spec = 2, 0, "kbhw,bhwd->kd"
+    else:
+        x_pad = jnp.pad(x, ((0, 0), pad_rows, pads[1], (0, 0)))
+        row_axis, tap_axis, spec = 1, -1, "bhwk,bhwd->kd"
     g_pad = jnp.pad(g, ((0, 0), (0, extra), (0, 0), (0, 0)))
 
     def block(i, total):
         top = i * rows
-        window = lax.dynamic_slice_in_dim(x_pad, top, rows + kh - 1, axis=1)
-        patches = jnp.concatenate(
-            [window[:, p:p + rows, q:q + out_w] for p in range(kh) for q in range(kw)], axis=-1)
+        window = lax.dynamic_slice_in_dim(x_pad, top, rows + kh - 1, axis=row_axis)
+        taps = [lax.slice_in_dim(lax.slice_in_dim(window, p, p + rows, axis=row_axis),
+                                 q, q + out_w, axis=row_axis + 1)
+                for p in range(kh) for q in range(kw)]
         g_rows = lax.dynamic_slice_in_dim(g_pad, top, rows, axis=1)
-        return total + jnp.einsum("bhwk,bhwd->kd", patches, g_rows,
-                                  preferred_element_type=jnp.float32)
+        return total + jnp.einsum(spec, jnp.concatenate(taps, axis=tap_axis), g_rows,
+                                  preferred_element_type=_accumulator(x, g))
 
-    total = lax.fori_loop(0, blocks, block, jnp.zeros((kh * kw * c_in, c_out), jnp.float32))
+    total = lax.fori_loop(0, blocks, block, jnp.zeros((kh * kw * c_in, c_out), _accumulator(x, g)))
     return total.reshape(kh, kw, c_in, c_out)
 
 
