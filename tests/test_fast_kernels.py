@@ -9,8 +9,9 @@ im2col, per-tap and row-block (both layouts) ways and `input_gradient` against a
 
 `irdepth_jax.models.dinov2`: `softmax_attention` (custom VJP) against the plain softmax formula and
 its autodiff (float32, and float64 on inputs where the float32 softmax is exact), `exact_gelu`
-against `jax.nn.gelu` and the hand formula, `gradient_fence` / `after`, and the tiny Depth
-Anything V2's parameter gradients against the same model built from plain autodiff functions.
+against `jax.nn.gelu` and the hand formula, `gradient_fence` / `after` / `materialize`, and the
+tiny Depth Anything V2's parameter gradients against the same model built from plain autodiff
+functions.
 """
 
 import functools
@@ -332,6 +333,11 @@ def test_gradient_fence_and_after():
     assert_bitwise(jax.jit(dinov2.gradient_fence)(x), x, "fence forward")
     grad = jax.jit(jax.grad(lambda x: jnp.sum(w * dinov2.gradient_fence(x))))(x)
     assert_bitwise(grad, w, "fence gradient")
+    assert_bitwise(jax.jit(conv.materialize)(w), w, "materialize")
+    assert np.isnan(np.asarray(jax.jit(conv.materialize)(w.at[0, 0, 0].set(jnp.nan)))).all()
+    # the conditional that makes XLA:CPU compute the array whole survives optimisation
+    hlo = jax.jit(lambda x: conv.materialize(x * 2.0) + 1.0).lower(x).compile().as_text()
+    assert "conditional(" in hlo
     g = random((3, 6), 3, 1e3)
     assert_bitwise(jax.jit(dinov2.after)(x, g), x, "after")
     # XLA keeps the dependence (it cannot fold x + 0 * g[0]): an inf there spreads
