@@ -5,10 +5,12 @@ loop, on this machine (jitted; the two interleaved, medians of 7 calls after one
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
 XLA's ms, ours ms and which of `conv.kernel_gradient`'s three ways ours took. Measured 2026-12-03
-on a 2-core Intel Xeon (AVX-512): (4, 256, 320, 64, 32) 360 vs 232 ms (row blocks);
-(1, 256, 320, 32, 32) 50 vs 32 ms; (2, 518, 518, 32, 32) 362 vs 181 ms; (4, 128, 160, 128, 64)
-336 vs 136 ms; (1, 64, 80, 256, 128) 51 vs 26 ms (by tap); (1, 16, 20, 512, 512) 7.9 vs 7.2 ms
-(im2col); (1, 256, 320, 1, 32) 2.0 vs 1.6 ms (im2col). On 2026-12-02's 2-core AMD EPYC (AVX2),
+on a 2-core Intel Xeon (AVX-512), commit eebdcf8: (4, 256, 320, 64, 32) 355 vs 192 ms (row
+blocks); (1, 256, 320, 32, 32) 52 vs 30 ms; (2, 518, 518, 32, 32) 353 vs 168 ms;
+(4, 128, 160, 128, 64) 306 vs 107 ms; (1, 64, 80, 256, 128) 45 vs 23 ms (by tap);
+(1, 16, 20, 512, 512) 8.6 vs 6.8 ms (im2col); (1, 256, 320, 1, 32) 2.1 vs 1.7 ms (im2col).
+PyTorch's oneDNN (`torch.nn.grad.conv2d_weight`, same machine) is still 2.5-4x faster than ours
+on the large layers (1, 256, 320, 64, 32: about 17 ms). On 2026-12-02's 2-core AMD EPYC (AVX2),
 before the channels-first layouts: (4, 256, 320, 64, 32) 2,529 vs 341 ms; (2, 518, 518, 32, 32)
 3,052 vs 209 ms. Use it to re-tune `conv.BLOCK_PIXELS`, `conv.MIN_LOOP_PIXELS`,
 `conv.IM2COL_BYTES` and `conv.CHANNELS_FIRST_MAX_OUT` on another CPU.
