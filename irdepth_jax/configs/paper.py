@@ -14,7 +14,7 @@ def get_config() -> Config:
     runs/s1``.
 
     Measured: not timed end to end. On a 2-core CPU (README, "Benchmarks") one Stage I train step
-    of its MTSA-UNet at batch 1 takes 1.7 s at 256x320 (``python experiments/bench_unet.py
+    of its MTSA-UNet at batch 1 takes 1.6 s at 256x320 (``python experiments/bench_unet.py
     --preset paper``), so its 50-epoch stages are impractical without an accelerator.
     """
     return Config(name="paper")
