@@ -152,14 +152,18 @@ def test_conv_general_dilated_is_lax_outside_nhwc():
 
 
 # ------------------------------------------------------------------------------- kernel_gradient
+def stride1_case(kernel_size, pads):
+    """A stride-1 conv's input (2, 11, 7, 3), kernel (kh, kw, 3, 4) and output gradient."""
+    kh, kw = kernel_size
+    out_h, out_w = 11 + sum(pads[0]) - kh + 1, 7 + sum(pads[1]) - kw + 1
+    return random((2, 11, 7, 3), 1), random((kh, kw, 3, 4), 2), random((2, out_h, out_w, 4), 3)
+
+
 @pytest.mark.parametrize("kernel_size, pads", [((3, 3), ((1, 1), (1, 1))), ((3, 2), ((2, 0), (0, 1))),
                                                ((5, 5), ((2, 1), (0, 3)))])
 def test_kernel_gradient_matches_autodiff(kernel_size, pads):
-    kh, kw = kernel_size
-    x = random((2, 11, 7, 3), 1)
-    kernel = random((kh, kw, 3, 4), 2)
-    out_h, out_w = 11 + sum(pads[0]) - kh + 1, 7 + sum(pads[1]) - kw + 1
-    g = random((2, out_h, out_w, 4), 3)
+    x, kernel, g = stride1_case(kernel_size, pads)
+    out_h, out_w = g.shape[1:3]
 
     def conv_of_kernel(k):
         return lax.conv_general_dilated(x, k, (1, 1), pads, dimension_numbers=NHWC)
@@ -187,11 +191,7 @@ def test_kernel_gradient_matches_autodiff(kernel_size, pads):
                                                ((5, 5), ((2, 1), (0, 3))), ((3, 3), ((3, 0), (1, 4)))])
 def test_input_gradient_matches_autodiff(kernel_size, pads):
     """The flipped-kernel convolution, and XLA's own where a padding exceeds kh - 1 (last case)."""
-    kh, kw = kernel_size
-    x = random((2, 11, 7, 3), 1)
-    kernel = random((kh, kw, 3, 4), 2)
-    out_h, out_w = 11 + sum(pads[0]) - kh + 1, 7 + sum(pads[1]) - kw + 1
-    g = random((2, out_h, out_w, 4), 3)
+    x, kernel, g = stride1_case(kernel_size, pads)
     want = jax.jit(lambda g: jax.vjp(
         lambda x: lax.conv_general_dilated(x, kernel, (1, 1), pads, dimension_numbers=NHWC), x)[1](g)[0])(g)
     got = jax.jit(conv.input_gradient, static_argnums=(2,))(g, kernel, pads)
