@@ -32,3 +32,21 @@ def test_loader_benchmark_reports_the_three_rates(tmp_path):
     assert result["batch"] == 4 and out.exists()
     assert result["training_over_step_alone"] == pytest.approx(
         result["training_img_per_s"] / result["step_alone_img_per_s"])
+
+
+@pytest.mark.parametrize("what", ["forward", "forward+backward"])
+def test_attention_benchmark_sides_compute_the_same(what):
+    pytest.importorskip("torch", reason="the PyTorch side needs torch (the [torch] extra)")
+    import jax.numpy as jnp
+
+    from experiments.bench_attention import HEAD_DIM, HEADS, ours_call, torch_calls
+
+    rng = np.random.default_rng(0)
+    q, k, v, g = (jnp.asarray(rng.standard_normal((2, HEADS, 37, HEAD_DIM), np.float32)) for _ in range(4))
+    as_list = (lambda out: [out]) if what == "forward" else list  # the output, or dq, dk, dv
+    ours = as_list(ours_call(what, q, k, v, g)())
+    for name, call in torch_calls(what, q, k, v, g).items():
+        theirs = as_list(call())
+        assert len(theirs) == len(ours)
+        for a, b in zip(ours, theirs):
+            np.testing.assert_allclose(np.asarray(a), b.numpy(), rtol=1e-4, atol=1e-5, err_msg=name)
