@@ -36,8 +36,9 @@ def ours_call(what: str, q, k, v, g):
     if what == "forward":
         fn = jax.jit(lambda q, k, v: softmax_attention(q, k, v, scale))
         return lambda: fn(q, k, v).block_until_ready()
-    fn = jax.jit(jax.grad(lambda q, k, v: jnp.sum(softmax_attention(q, k, v, scale) * g), (0, 1, 2)))
-    return lambda: jax.block_until_ready(fn(q, k, v))
+    # g passed as an argument: closed over, it would be a constant that XLA tries to fold
+    fn = jax.jit(jax.grad(lambda q, k, v, g: jnp.sum(softmax_attention(q, k, v, scale) * g), (0, 1, 2)))
+    return lambda: jax.block_until_ready(fn(q, k, v, g))
 
 
 def torch_calls(what: str, q, k, v, g):
