@@ -71,6 +71,8 @@ CONV_CASES = {
     # test makes the im2col budget zero for the cases named *_loop and *_by_tap)
     "5x5_asym_loop": ((1, 130, 130, 3), dict(features=4, kernel_size=(5, 5), padding=((2, 1), (0, 3)))),
     "3x3_same_loop": ((1, 130, 130, 3), dict(features=4, kernel_size=(3, 3), padding="SAME", use_bias=False)),
+    # the Winograd kernel gradient (the test makes its channel threshold zero), odd sizes
+    "3x3_asym_winograd": ((2, 9, 11, 3), dict(features=4, kernel_size=(3, 3), padding=((2, 0), (0, 1)))),
     # 100 x 100 output pixels < MIN_LOOP_PIXELS: one matmul per tap
     "3x3_same_by_tap": ((1, 100, 100, 3), dict(features=4, kernel_size=(3, 3), padding="SAME")),
     # stride 2 falls back to lax.conv_general_dilated
@@ -92,6 +94,8 @@ def test_conv_matches_flax_conv(case, monkeypatch):
     shape, kwargs = CONV_CASES[case]
     if case.endswith(("_loop", "_by_tap")):
         monkeypatch.setattr(conv, "IM2COL_BYTES", 0)
+    if case.endswith("_winograd"):
+        monkeypatch.setattr(conv, "WINOGRAD_MIN_CHANNELS", 0)
     ours, flax_conv = conv.Conv(**kwargs), nn.Conv(**kwargs)
     x = random(shape, 1)
     key = jax.random.key(3)
@@ -118,12 +122,14 @@ def test_conv_matches_flax_conv(case, monkeypatch):
     assert_close(grads, grads_ref, 1e-5, "gradients")
 
     # the case exercises the path it is named for: the kernel gradient's fori_loop (a scan)
-    # exactly for the cases named *_loop; the im2col or one matmul per tap for the others
+    # exactly for the cases named *_loop and *_winograd; the im2col or one matmul per tap for
+    # the others
     if not one_by_one:
         jaxpr = str(jax.make_jaxpr(jax.grad(loss_fn(ours), (0, 1)))(params, x))
-        assert ("scan[" in jaxpr or "while[" in jaxpr) == case.endswith("_loop")
+        assert ("scan[" in jaxpr or "while[" in jaxpr) == case.endswith(("_loop", "_winograd"))
         if "strides" not in kwargs:
             expected = ("row_blocks" if case.endswith("_loop") else
+                        "winograd" if case.endswith("_winograd") else
                         "by_tap" if case.endswith("_by_tap") else "im2col")
             out_shape = (shape[0], *output_size(shape, kwargs), kwargs["features"])
             assert conv.kernel_gradient_method(shape, out_shape, kwargs["kernel_size"]) == expected
@@ -159,8 +165,8 @@ def stride1_case(kernel_size, pads):
     return random((2, 11, 7, 3), 1), random((kh, kw, 3, 4), 2), random((2, out_h, out_w, 4), 3)
 
 
-@pytest.mark.parametrize("kernel_size, pads", [((3, 3), ((1, 1), (1, 1))), ((3, 2), ((2, 0), (0, 1))),
-                                               ((5, 5), ((2, 1), (0, 3)))])
+@pytest.mark.parametrize("kernel_size, pads", [((3, 3), ((1, 1), (1, 1))), ((3, 3), ((2, 0), (0, 1))),
+                                               ((3, 2), ((2, 0), (0, 1))), ((5, 5), ((2, 1), (0, 3)))])
 def test_kernel_gradient_matches_autodiff(kernel_size, pads):
     x, kernel, g = stride1_case(kernel_size, pads)
     out_h, out_w = g.shape[1:3]
@@ -181,10 +187,31 @@ def test_kernel_gradient_matches_autodiff(kernel_size, pads):
         for channels_first in (True, False):
             ways[f"row_blocks, {block_pixels} pixels per block, channels_first={channels_first}"] = (
                 functools.partial(loop, block_pixels=block_pixels, channels_first=channels_first))
+    if kernel_size == (3, 3):
+        # blocks of one tile row (2 output rows), of two or three, all in one block
+        winograd = jax.jit(conv.kernel_gradient_winograd, static_argnums=(2, 3))
+        for block_pixels in (1, 60, 10_000):
+            ways[f"winograd, {block_pixels} pixels per block"] = (
+                lambda x, g, _, pads, block_pixels=block_pixels: winograd(x, g, pads, block_pixels))
     for name, way in ways.items():
         got = way(x, g, kernel_size, pads)
         assert got.shape == kernel.shape and got.dtype == jnp.float32
         assert_close(got, want, 1e-5, f"kernel gradient, {name}")
+
+
+def test_winograd_kernel_gradient_in_float64_and_where_it_is_taken(x64):
+    """The Winograd way in float64 matches the direct sum to float64 rounding (its transforms
+    and sums stay float64), and is the way of the `paper` UNet's wide 3x3 layers only."""
+    pads = ((1, 1), (1, 1))
+    x, g = random((2, 9, 12, 5), 1, dtype=jnp.float64), random((2, 9, 12, 6), 2, dtype=jnp.float64)
+    want = jax.jit(conv.kernel_gradient_im2col, static_argnums=(2, 3))(x, g, (3, 3), pads)
+    got = jax.jit(conv.kernel_gradient_winograd, static_argnums=(2, 3))(x, g, pads, 30)
+    assert got.dtype == jnp.float64
+    assert_close(got, want, 1e-13, "float64 Winograd kernel gradient")
+    method = conv.kernel_gradient_method
+    assert method((1, 64, 80, 256), (1, 64, 80, 128), (3, 3)) == "winograd"
+    assert method((1, 128, 160, 64), (1, 128, 160, 64), (3, 3)) != "winograd"
+    assert method((1, 64, 80, 256), (1, 64, 80, 128), (5, 5)) != "winograd"
 
 
 @pytest.mark.parametrize("kernel_size, pads", [((3, 3), ((1, 1), (1, 1))), ((3, 2), ((2, 0), (0, 1))),
