@@ -39,6 +39,7 @@ from experiments.unet_torch import (  # noqa: E402
     load_flax_params,
 )
 from irdepth_jax.config import get_config  # noqa: E402
+from irdepth_jax.models import conv  # noqa: E402
 from irdepth_jax.models.unet import MTSAUNet  # noqa: E402
 
 pytestmark = pytest.mark.parity
@@ -199,9 +200,13 @@ def test_forward_matches(case, train):
 
 
 @pytest.mark.parametrize("case", ["tiny", pytest.param("tiny-fixed-27x45", marks=pytest.mark.slow)])
-def test_float64_train_forward_and_gradients_match(case):
+@pytest.mark.parametrize("winograd", [False, True], ids=["direct", "winograd"])
+def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
     """Train mode with float64 networks: outputs, running statistics and every parameter's
-    gradient of the benchmark's Stage I loss."""
+    gradient of the benchmark's Stage I loss; with `winograd`, every 3x3 kernel gradient by
+    Winograd (the `paper` preset's wide layers take it; `tiny`'s narrow ones would not)."""
+    if winograd:
+        monkeypatch.setattr(conv, "WINOGRAD_MIN_CHANNELS", 0)
     cfg, raw, variables, twin = _setup(case)
     target, labels = _targets(cfg, raw)
     model = MTSAUNet(cfg)
