@@ -5,7 +5,7 @@ sides interleaved in one process, medians of 7 calls after one warm-up).
     python experiments/bench_conv_grad.py
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
-XLA's ms, ours ms and which of `conv.kernel_gradient`'s three ways ours took, PyTorch's ms and
+XLA's ms, ours ms and which of `conv.kernel_gradient`'s four ways ours took, PyTorch's ms and
 the ratio. Measured 2026-12-03
 on a 2-core Intel Xeon (AVX-512), commit eebdcf8: (4, 256, 320, 64, 32) 355 vs 192 ms (row
 blocks); (1, 256, 320, 32, 32) 52 vs 30 ms; (2, 518, 518, 32, 32) 353 vs 168 ms;
