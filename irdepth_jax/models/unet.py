@@ -21,7 +21,7 @@ import jax.numpy as jnp
 from irdepth_jax.config import UNetConfig
 from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
 from irdepth_jax.imaging.raw import normalize_raw
-from irdepth_jax.models.conv import Conv, materialize, upsample_by_matmul
+from irdepth_jax.models.conv import Conv, upsample_by_matmul
 from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
@@ -120,11 +120,7 @@ class UpBlock(nn.Module):
             axis_name=self.axis_name,
             name="up_bn",
         )(x)
-        # An array of its own: XLA:CPU otherwise recomputes the depth-to-space transpose, BN
-        # and ReLU inside every consumer, RGG's gradient map reading 4 neighbours of each pixel
-        # in its backward (measured, `paper` train step: 256x320 batch 1 -6 %, batch 4 -11 %,
-        # 512x640 -6 %).
-        x = materialize(nn.relu(x))
+        x = nn.relu(x)
         if self.use_rgg:
             x, skip = RGG(self.rgg_alpha, name="rgg")(x, skip, input_grad)
         x = jnp.concatenate([x, skip], axis=-1)
