@@ -5,7 +5,7 @@ of the kernel gradient's four ways, the 1x1 einsum, the stride-2 fallback), `ker
 im2col, per-tap, row-block (both layouts) and Winograd ways and `input_gradient` against autodiff of
 `lax.conv_general_dilated`,
 `upsample_by_matmul` against its formula in numpy loops, `ConvTranspose` against
-`flax.linen.ConvTranspose`.
+`flax.linen.ConvTranspose`, `Dense` against `flax.linen.Dense`.
 
 `irdepth_jax.models.dinov2`: `softmax_attention` (custom VJP) against the plain softmax formula and
 its autodiff (float32, and float64 on inputs where the float32 softmax is exact), `exact_gelu`
@@ -266,6 +266,31 @@ def test_conv_transpose_matches_flax(k):
     assert_close(grads, grads_ref, 1e-5, "gradients")
 
 
+@pytest.mark.parametrize("shape", [(2, 5, 3), (7, 3)])
+def test_dense_matches_flax_dense(shape):
+    """Same parameters; forward and gradients through the 1x1 matmul's custom VJP (on CPU)."""
+    x = random(shape, 1)
+    ours, flax_dense = conv.Dense(6), nn.Dense(6)
+    params = ours.init(jax.random.key(3), x)
+    assert_bitwise(params, flax_dense.init(jax.random.key(3), x), "init")
+    params = {"params": {**params["params"], "bias": random((6,), 4)}}
+    assert "custom_vjp_call" in str(jax.make_jaxpr(ours.apply)(params, x))
+    y = jax.jit(ours.apply)(params, x)
+    assert_close(y, jax.jit(flax_dense.apply)(params, x), 1e-6, "forward")
+    w = random(y.shape, 5)
+    grads = jax.jit(jax.grad(lambda p, x: jnp.sum(w * ours.apply(p, x)), (0, 1)))(params, x)
+    grads_ref = jax.jit(jax.grad(lambda p, x: jnp.sum(w * flax_dense.apply(p, x)), (0, 1)))(params, x)
+    assert_close(grads, grads_ref, 1e-5, "gradients")
+
+
+def test_dot_general_is_lax_outside_a_last_axis_matmul():
+    x, k = random((4, 3, 5), 1), random((4, 6), 2)  # contracts x's first axis
+    numbers = (((0,), (0,)), ((), ()))
+    assert "custom_vjp_call" not in str(jax.make_jaxpr(lambda x, k: conv.dot_general(x, k, numbers))(x, k))
+    assert_bitwise(jax.jit(lambda x, k: conv.dot_general(x, k, numbers))(x, k),
+                   jax.jit(lambda x, k: lax.dot_general(x, k, numbers))(x, k))
+
+
 # ---------------------------------------------------------------------------------- attention
 def plain_attention(q, k, v, scale):
     """The plain formula, as `attend` lays it out: softmax in float32, autodiff's backward."""
@@ -373,7 +398,7 @@ def test_gradient_fence_and_after():
 
 # ------------------------------------------------------------------------ whole backbone, tiny
 def test_vit_gradients_match_plain_autodiff(monkeypatch):
-    """The tiny preset's DINOv2 backbone (4 blocks, every block tapped), where all three custom
+    """The tiny preset's DINOv2 backbone (4 blocks, every block tapped), where all four custom
     VJPs sit (the DPT head has none; the full model would double the compile time)."""
     cfg = depth_anything_config("tiny")
     params = random_params(cfg)["pretrained"]
@@ -392,11 +417,12 @@ def test_vit_gradients_match_plain_autodiff(monkeypatch):
         return str(jax.make_jaxpr(loss)(params)), compiled(params)
 
     jaxpr, grads = gradients()
-    # per block: attention, GELU, the fence before it and the one inside it
-    assert jaxpr.count("custom_vjp_call") == 4 * cfg.depth
+    # per block: attention, GELU, the fence before it and the one inside it, 4 dense layers
+    assert jaxpr.count("custom_vjp_call") == 8 * cfg.depth
     monkeypatch.setattr(dinov2, "softmax_attention", plain_attention)
     monkeypatch.setattr(dinov2, "exact_gelu", lambda x: jax.nn.gelu(x, approximate=False))
     monkeypatch.setattr(dinov2, "gradient_fence", lambda x: x)
+    monkeypatch.setattr(dinov2, "Dense", nn.Dense)
     jaxpr_ref, grads_ref = gradients()
     assert "custom_vjp_call" not in jaxpr_ref
     assert_close(grads, grads_ref, 1e-5, "parameter gradients")

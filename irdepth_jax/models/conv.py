@@ -103,12 +103,15 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
 
 @functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
 def _pointwise_conv(x, kernel, precision):
-    """A 1x1 convolution as a matmul: (B, H, W, C_in), (C_in, C_out) -> (B, H, W, C_out). Its
-    kernel gradient contracts the pixels with x laid out channels first, made an array of its
-    own (`materialize`): XLA:CPU's version transposed x inside a fusion with x's producers
-    (RGG's gradient map, 29 ms at 256 x 320 x 32) and contracted the leading axes (3-4x slower);
-    the `paper` UNet's train step at 256x320 went 1.64 -> 1.52 s (interleaved pair)."""
-    return jnp.einsum("bhwc,cd->bhwd", x, kernel, precision=precision)
+    """A matmul over the last axis, (..., C_in) @ (C_in, C_out) -> (..., C_out): a 1x1
+    convolution, or a dense layer (`dot_general`). Its kernel gradient contracts the pixels
+    (tokens) with x laid out channels first, made an array of its own (`materialize`): XLA:CPU's
+    version transposed x inside a fusion with x's producers (RGG's gradient map, 29 ms at 256 x
+    320 x 32) and contracted the leading axes (3-4x slower); the `paper` UNet's train step at
+    256x320 went 1.64 -> 1.52 s (interleaved pair). In the ViT, XLA:CPU left that matmul to
+    Eigen, outside YNNPACK (ViT-S at 518x518, batch 2: the 48 weight gradients 1.6 s of a 5 s
+    train step, 65-75 GFLOP/s)."""
+    return jnp.einsum("...c,cd->...d", x, kernel, precision=precision)
 
 
 def _pointwise_conv_fwd(x, kernel, precision):
@@ -117,7 +120,7 @@ def _pointwise_conv_fwd(x, kernel, precision):
 
 def _pointwise_conv_bwd(precision, residuals, g):
     x, kernel = residuals
-    dx = jnp.einsum("bhwd,cd->bhwc", g, kernel, precision=precision)
+    dx = jnp.einsum("...d,cd->...c", g, kernel, precision=precision)
     x_t = materialize(x.reshape(-1, x.shape[-1]).T)
     dkernel = jnp.einsum("cp,pd->cd", x_t, g.reshape(-1, g.shape[-1]), precision=precision,
                          preferred_element_type=_accumulator(x, g))
@@ -125,6 +128,25 @@ def _pointwise_conv_bwd(precision, residuals, g):
 
 
 _pointwise_conv.defvjp(_pointwise_conv_fwd, _pointwise_conv_bwd)
+
+
+def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
+    """`lax.dot_general` for `flax.linen.Dense`: on CPU, its contraction of lhs's last axis with
+    a 2-D kernel is `_pointwise_conv` (the kernel gradient above); anything else, and any other
+    backend, is `lax.dot_general` itself."""
+    if (jax.default_backend() == "cpu" and rhs.ndim == 2 and preferred_element_type is None
+            and tuple(map(tuple, dimension_numbers[0])) == ((lhs.ndim - 1,), (0,))
+            and not any(dimension_numbers[1])):
+        return _pointwise_conv(lhs, rhs, precision)
+    return lax.dot_general(lhs, rhs, dimension_numbers, precision=precision,
+                           preferred_element_type=preferred_element_type)
+
+
+class Dense(nn.Dense):
+    """`flax.linen.Dense` (same attributes, parameters and initialisation) computed by
+    `dot_general` above."""
+
+    dot_general: object = staticmethod(dot_general)
 
 
 def _plain_conv(x, kernel, pads, precision):

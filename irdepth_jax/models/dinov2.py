@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from irdepth_jax.models.conv import materialize
+from irdepth_jax.models.conv import Dense, materialize
 
 POS_EMBED_MODES = ("official", "transformers")
 _INTERPOLATE_OFFSET = 0.1  # the official code's work-around offset (DINOv2 without registers)
@@ -277,10 +277,10 @@ class Attention(nn.Module):
     @nn.compact
     def __call__(self, x):
         """x: (B, N, D) -> (B, N, D)."""
-        qkv = nn.Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
+        qkv = Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
         implementation = attention_implementation(self.attention, jax.default_backend(), self.dtype)
         out = attend(qkv, self.num_heads, implementation)
-        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(out)
+        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(out)
 
 
 class Mlp(nn.Module):
@@ -292,9 +292,9 @@ class Mlp(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=_dense_init(), name="fc1")(x)
+        x = Dense(self.hidden, dtype=self.dtype, kernel_init=_dense_init(), name="fc1")(x)
         x = exact_gelu(x)
-        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="fc2")(x)
+        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="fc2")(x)
 
 
 class SwiGLUFFN(nn.Module):
@@ -307,8 +307,8 @@ class SwiGLUFFN(nn.Module):
     @nn.compact
     def __call__(self, x):
         hidden = (int(self.hidden * 2 / 3) + 7) // 8 * 8
-        x1, x2 = jnp.split(nn.Dense(2 * hidden, dtype=self.dtype, kernel_init=_dense_init(), name="w12")(x), 2, -1)
-        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="w3")(jax.nn.silu(x1) * x2)
+        x1, x2 = jnp.split(Dense(2 * hidden, dtype=self.dtype, kernel_init=_dense_init(), name="w12")(x), 2, -1)
+        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="w3")(jax.nn.silu(x1) * x2)
 
 
 class Block(nn.Module):
