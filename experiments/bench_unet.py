@@ -198,40 +198,55 @@ def setup_twin(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
 
 
 def bench_case(cfg_args: tuple, size, batch: int, repeats: int, warmup: int, threads: int,
-               with_torch: bool, peak_size: int | None, keep_memory: bool = True) -> dict:
-    """One (size, batch): ours and (with_torch) the twin, each in its own `Worker`. Measures
-    the matmul peak too when `peak_size` is given."""
+               with_torch: bool, peak_size: int | None, keep_memory: bool = True,
+               one_at_a_time: bool = False) -> dict:
+    """One (size, batch): ours and (with_torch) the twin, each in its own `Worker`, their calls
+    interleaved. Measures the matmul peak too when `peak_size` is given. `one_at_a_time`: for
+    cases where the two processes do not fit in memory together, ours runs all its calls and
+    exits before the twin's process starts (medians of each, not interleaved)."""
     args = (*cfg_args, size, batch, peak_size or 256)
-    with contextlib.ExitStack() as stack:
-        sides = [stack.enter_context(Worker(setup_ours, *args, threads=threads, keep_memory=keep_memory))]
+    setups = [setup_ours] + ([setup_twin] if with_torch else [])
+    calls = ["forward", "train"] + (["matmul"] if peak_size else [])
+    result = {"size": list(size), "batch": batch, "interleaved": not one_at_a_time}
+    if one_at_a_time:
+        seconds, forwards, infos = {name: [] for name in calls}, [], []
+        for setup in setups:
+            with Worker(setup, *args, threads=threads, keep_memory=keep_memory) as side:
+                infos.append(side.info)
+                forwards.append(side.result("forward") if with_torch else None)
+                for name in calls:
+                    seconds[name] += interleaved_medians([functools.partial(side.time, name)],
+                                                         repeats, warmup)
+    else:
+        with contextlib.ExitStack() as stack:
+            sides = [stack.enter_context(Worker(setup, *args, threads=threads,
+                                                keep_memory=keep_memory)) for setup in setups]
+            infos = [side.info for side in sides]
+            forwards = [side.result("forward") for side in sides] if with_torch else []
+            seconds = {name: interleaved_medians([functools.partial(s.time, name) for s in sides],
+                                                 repeats, warmup) for name in calls}
+    result.update(infos[0])
+    if with_torch:
+        ours, theirs = forwards
+        result["fwd_max_abs_diff"] = max(float(np.abs(v - theirs[k].transpose(0, 2, 3, 1)).max())
+                                         for k, v in ours.items())
+    for name, key in (("forward", "fwd"), ("train", "train")):
+        ours_s = seconds[name][0]
+        result[f"{key}_ours_ms"] = 1e3 * ours_s
+        result[f"{key}_ours_ms_per_img"] = 1e3 * ours_s / batch
+        result[f"{key}_ours_gflops"] = result[f"{key}_flops"] / ours_s / 1e9
         if with_torch:
-            sides.append(stack.enter_context(Worker(setup_twin, *args, threads=threads,
-                                                    keep_memory=keep_memory)))
-        ours = sides[0]
-        result = {"size": list(size), "batch": batch, **ours.info}
+            torch_s = seconds[name][1]
+            result[f"{key}_torch_ms"] = 1e3 * torch_s
+            result[f"{key}_torch_ms_per_img"] = 1e3 * torch_s / batch
+            result[f"{key}_ours_over_torch"] = ours_s / torch_s
+            result[f"{key}_torch_gflops"] = result[f"{key}_flops"] / torch_s / 1e9
+    if peak_size:
+        result["matmul_peak"] = {"size": peak_size,
+                                 "xla_gflops": peak_gflops(peak_size, seconds["matmul"][0])}
         if with_torch:
-            theirs = sides[1].result("forward")
-            result["fwd_max_abs_diff"] = max(
-                float(np.abs(v - theirs[k].transpose(0, 2, 3, 1)).max())
-                for k, v in ours.result("forward").items())
-        for name, key in (("forward", "fwd"), ("train", "train")):
-            seconds = interleaved_medians([functools.partial(s.time, name) for s in sides],
-                                          repeats, warmup)
-            result[f"{key}_ours_ms"] = 1e3 * seconds[0]
-            result[f"{key}_ours_ms_per_img"] = 1e3 * seconds[0] / batch
-            result[f"{key}_ours_gflops"] = result[f"{key}_flops"] / seconds[0] / 1e9
-            if with_torch:
-                result[f"{key}_torch_ms"] = 1e3 * seconds[1]
-                result[f"{key}_torch_ms_per_img"] = 1e3 * seconds[1] / batch
-                result[f"{key}_ours_over_torch"] = seconds[0] / seconds[1]
-                result[f"{key}_torch_gflops"] = result[f"{key}_flops"] / seconds[1] / 1e9
-        if peak_size:
-            seconds = interleaved_medians([functools.partial(s.time, "matmul") for s in sides],
-                                          repeats, warmup)
-            result["matmul_peak"] = {"size": peak_size, "xla_gflops": peak_gflops(peak_size, seconds[0])}
-            if with_torch:
-                result["matmul_peak"]["torch_gflops"] = peak_gflops(peak_size, seconds[1])
-                result["torch_threads"] = sides[1].info["threads"]
+            result["matmul_peak"]["torch_gflops"] = peak_gflops(peak_size, seconds["matmul"][1])
+            result["torch_threads"] = infos[1]["threads"]
     return result
 
 
@@ -289,6 +304,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--default-malloc", action="store_true",
                         help="leave glibc's malloc as it is in both sides' processes (default: both "
                              "keep freed memory for reuse, irdepth_jax.hostmem)")
+    parser.add_argument("--one-at-a-time", action="store_true",
+                        help="run ours, then the twin, never both processes at once (for sizes "
+                             "where the two do not fit in memory together, e.g. 512x640 batch 4 "
+                             "in 24 GiB); times are then not interleaved")
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
     args = parser.parse_args(argv)
 
@@ -296,7 +315,8 @@ def main(argv=None) -> dict:
     cfg_args = (args.preset, not args.no_rgg)
     summary = {
         "preset": args.preset, "use_rgg": cfg_args[1], "repeats": args.repeats,
-        "threads": args.threads, "processes": "one per side (Worker)",
+        "threads": args.threads,
+        "processes": "one per side (Worker)" + (", one at a time" if args.one_at_a_time else ""),
         "keep_freed_memory": not args.default_malloc,
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
         "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), **versions(),
@@ -308,7 +328,8 @@ def main(argv=None) -> dict:
         for batch in args.batch:
             peak = args.peak_size if not results else None
             results.append(bench_case(cfg_args, size, batch, args.repeats, args.warmup,
-                                      args.threads, with_torch, peak, not args.default_malloc))
+                                      args.threads, with_torch, peak, not args.default_malloc,
+                                      args.one_at_a_time))
             if peak:
                 summary["matmul_peak"] = results[-1].pop("matmul_peak")
                 summary["device"] = results[-1]["device"]

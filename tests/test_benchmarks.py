@@ -50,3 +50,50 @@ def test_attention_benchmark_sides_compute_the_same(what):
         assert len(theirs) == len(ours)
         for a, b in zip(ours, theirs):
             np.testing.assert_allclose(np.asarray(a), b.numpy(), rtol=1e-4, atol=1e-5, err_msg=name)
+
+
+class _FakeWorker:
+    """Stands in for bench_common.Worker: fixed seconds per call, and a count of the processes
+    that would be alive at once."""
+
+    alive = 0
+    most_alive = 0
+
+    def __init__(self, setup, *args, threads, keep_memory=True):
+        self.name = setup.__name__
+        self.info = {"fwd_flops": 2e9, "train_flops": 6e9, "threads": threads}
+
+    def __enter__(self):
+        type(self).alive += 1
+        type(self).most_alive = max(type(self).most_alive, type(self).alive)
+        return self
+
+    def __exit__(self, *exc):
+        type(self).alive -= 1
+
+    def time(self, name):
+        seconds = {"forward": 0.5, "train": 2.0, "matmul": 0.1}[name]
+        return seconds * (1.0 if self.name == "setup_ours" else 1.25)
+
+    def result(self, name):
+        outputs = {"recon": np.zeros((1, 4, 4, 1), np.float32)}
+        if self.name == "setup_ours":
+            return outputs
+        return {k: v.transpose(0, 3, 1, 2) + 1e-3 for k, v in outputs.items()}  # NCHW, as torch
+
+
+@pytest.mark.parametrize("one_at_a_time", [False, True])
+def test_unet_benchmark_one_at_a_time_never_holds_both_sides(monkeypatch, one_at_a_time):
+    from experiments import bench_unet
+
+    monkeypatch.setattr(bench_unet, "Worker", _FakeWorker)
+    _FakeWorker.alive = _FakeWorker.most_alive = 0
+    result = bench_unet.bench_case(("tiny", True), (4, 4), 1, repeats=2, warmup=1, threads=2,
+                                   with_torch=True, peak_size=64, one_at_a_time=one_at_a_time)
+    assert _FakeWorker.most_alive == (1 if one_at_a_time else 2)
+    assert result["interleaved"] is not one_at_a_time
+    assert result["fwd_ours_ms"] == pytest.approx(500) and result["train_torch_ms"] == pytest.approx(2500)
+    assert result["train_ours_over_torch"] == pytest.approx(0.8)
+    assert result["fwd_max_abs_diff"] == pytest.approx(1e-3)
+    assert result["train_ours_gflops"] == pytest.approx(3.0)
+    assert result["matmul_peak"]["torch_gflops"] == pytest.approx(2 * 64**3 / 0.125 / 1e9)
