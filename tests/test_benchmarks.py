@@ -97,3 +97,41 @@ def test_unet_benchmark_one_at_a_time_never_holds_both_sides(monkeypatch, one_at
     assert result["fwd_max_abs_diff"] == pytest.approx(1e-3)
     assert result["train_ours_gflops"] == pytest.approx(3.0)
     assert result["matmul_peak"]["torch_gflops"] == pytest.approx(2 * 64**3 / 0.125 / 1e9)
+
+
+def test_bounds_work_out_the_rate_a_target_needs():
+    from experiments.bench_bounds import target_rows
+
+    unet = {"preset": "paper", "matmul_peak": {"xla_gflops": 200.0},
+            "results": [{"size": [256, 320], "batch": 4, "fwd_flops": 1e11, "train_flops": 4e11,
+                         "fwd_ours_ms": 500.0, "fwd_torch_ms": 1000.0,
+                         "train_ours_ms": 4000.0, "train_torch_ms": 2500.0}]}
+    fwd, train = target_rows(unet, target=0.8)
+    # forward: 100 GFLOP in 0.5 s = 200 GFLOP/s (100 % of the peak); the target 0.8 x 1 s = 0.8 s
+    # needs 125 GFLOP/s = 62.5 %
+    assert fwd["what"] == "MTSA-UNet paper forward, 256x320, batch 4"
+    assert fwd["target_ms"] == pytest.approx(800.0) and fwd["ratio"] == pytest.approx(0.5)
+    assert fwd["ours_gflops"] == pytest.approx(200.0) and fwd["ours_peak_pct"] == pytest.approx(100.0)
+    assert fwd["needed_gflops"] == pytest.approx(125.0) and fwd["needed_peak_pct"] == pytest.approx(62.5)
+    # train step: 400 GFLOP by 0.8 x 2.5 s = 2 s: 200 GFLOP/s, the whole peak
+    assert train["needed_peak_pct"] == pytest.approx(100.0) and train["ratio"] == pytest.approx(1.6)
+
+    depth = {"encoder": "vits", "matmul_peak": {"xla_gflops": 100.0},
+             "results": [{"reference": "official", "batch": 2, "kind": "train_step", "size": [518, 518],
+                          "ours_ms": 2000.0, "theirs_ms": 1000.0, "ours_gflops": 50.0, "ours_over_theirs": 2.0}]}
+    (row,) = target_rows(depth, target=0.5)
+    # 50 GFLOP/s for 2 s = 100 GFLOP; in 0.5 x 1 s it needs 200 GFLOP/s, twice the peak
+    assert row["gflop"] == pytest.approx(100.0) and row["needed_peak_pct"] == pytest.approx(200.0)
+    assert row["what"] == "Depth Anything V2 vits train step, 518x518, batch 2 vs official"
+    with pytest.raises(ValueError, match="not a bench_unet"):
+        target_rows({"results": []})
+
+
+def test_bounds_read_the_committed_results(capsys):
+    from experiments.bench_bounds import main
+
+    rows = main([])
+    assert len(rows) >= 8 and all(0 < r["needed_peak_pct"] < 1000 for r in rows)
+    assert "% needed" in capsys.readouterr().out
+    with pytest.raises(SystemExit, match="no such file"):
+        main(["no-such-file.json"])
