@@ -5,8 +5,8 @@ sides interleaved in one process, medians of 7 calls after one warm-up).
     python experiments/bench_conv_grad.py
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
-XLA's ms, ours ms and which of `conv.kernel_gradient`'s four ways ours took, PyTorch's ms and
-the ratio. Measured 2026-12-03
+XLA's ms, ours ms and which of `conv.kernel_gradient`'s five ways ours took, ours without the
+native kernel (`conv.USE_NATIVE` off: the XLA ways), PyTorch's ms and the ratio. Measured 2026-12-03
 on a 2-core Intel Xeon (AVX-512), commit eebdcf8: (4, 256, 320, 64, 32) 355 vs 192 ms (row
 blocks); (1, 256, 320, 32, 32) 52 vs 30 ms; (2, 518, 518, 32, 32) 353 vs 168 ms;
 (4, 128, 160, 128, 64) 306 vs 107 ms; (1, 64, 80, 256, 128) 45 vs 23 ms (by tap);
@@ -60,6 +60,7 @@ def torch_kernel_gradient_call(x, kernel, g):
 def main() -> None:
     keep_freed_memory()
     ours, xla = kernel_gradient_fn(conv.conv_general_dilated), kernel_gradient_fn(lax.conv_general_dilated)
+    xla_ways = kernel_gradient_fn(conv.conv_general_dilated)  # traced with conv.USE_NATIVE off
     with_torch = importlib.util.find_spec("torch") is not None
     if with_torch:
         import torch
@@ -69,17 +70,21 @@ def main() -> None:
     for b, h, w, ci, co in SHAPES:
         args = (rng.random((b, h, w, ci), np.float32), rng.random((3, 3, ci, co), np.float32),
                 rng.random((b, h, w, co), np.float32))
-        calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours)]
+        use_native, conv.USE_NATIVE = conv.USE_NATIVE, False
+        xla_ways_call = xla_ways.lower(*args).compile()
+        conv.USE_NATIVE = use_native
+        calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours, xla_ways_call)]
         if with_torch:
             calls.append(torch_kernel_gradient_call(*args))
         seconds = interleaved_medians([functools.partial(wall_seconds, c) for c in calls],
                                       repeats=7, warmup=1)
         method = conv.kernel_gradient_method((b, h, w, ci), (b, h, w, co), (3, 3))
-        line = f"{(b, h, w, ci, co)}: XLA {1e3 * seconds[0]:.1f} ms, ours ({method}) {1e3 * seconds[1]:.1f} ms"
+        line = (f"{(b, h, w, ci, co)}: XLA {1e3 * seconds[0]:.1f} ms, ours ({method}) {1e3 * seconds[1]:.1f} ms,"
+                f" ours without the native kernel {1e3 * seconds[2]:.1f} ms")
         if with_torch:
-            theirs = calls[2]().numpy().transpose(2, 3, 1, 0)  # (Co, Ci, kh, kw) -> HWIO
+            theirs = calls[3]().numpy().transpose(2, 3, 1, 0)  # (Co, Ci, kh, kw) -> HWIO
             diff = np.abs(theirs - np.asarray(ours(*args))).max() / np.abs(theirs).max()
-            line += (f", PyTorch {1e3 * seconds[2]:.1f} ms (ours / PyTorch {seconds[1] / seconds[2]:.2f};"
+            line += (f", PyTorch {1e3 * seconds[3]:.1f} ms (ours / PyTorch {seconds[1] / seconds[3]:.2f};"
                      f" max |diff| / max |theirs| {diff:.1e})")
         print(line, flush=True)
 

@@ -11,6 +11,9 @@ do it in a loop over blocks of output rows whose im2col stays in cache, summing 
 products (110 ms for the layer above); small ones build the whole im2col; deep ones with few
 pixels and many channels sum one matmul per tap instead; wide 3x3 layers (C_in x C_out >= 64 x
 128) use Winograd's F(3x3, 2x2), 2.25x fewer multiply-adds (`kernel_gradient` says when).
+Where the machine's C++ compiler could build it, the other float32 layers take a native kernel
+instead (`native_conv`: register tiles, no im2col; 2-2.5x faster than the row blocks on the
+full-resolution layers, at 155-176 GFLOP/s).
 
 A 1x1 convolution is a matmul over the channel axis (faster than XLA:CPU's convolution in both
 directions), its kernel gradient a matmul with the pixels minor on the left (`_pointwise_conv`).
@@ -27,6 +30,8 @@ import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from jax import lax
+
+from irdepth_jax.models import native_conv
 
 BLOCK_PIXELS = 2048
 """Output pixels (batch x rows x width) per block of the kernel-gradient loop: its im2col block
@@ -62,6 +67,20 @@ Winograd / before, batch 1 (batch 4): 64x80 256 -> 128 channels 18 / 39 (147 / 2
 128 9.3 / 11.4 (79 / 135); 32x40 512 -> 256 11.6 / 19.1 (152 / 213); 128x160 128 -> 64 42 / 45
 (117 / 146); 64x80 64 -> 128 7.1 / 9.3; but 128x160 64 -> 64 19 / 16 (74 / 76) and 256x320 32
 -> 32 42 / 35 (109 / 98)."""
+
+USE_NATIVE = True
+"""Whether `kernel_gradient` may take the native kernel (`native_conv`, when it is available).
+Measured on a 2-core AVX-512 EPYC against the row blocks, ms: 4 x 256 x 320, 64 -> 32 channels,
+71 vs 168; 1 x 512 x 640, 32 -> 32, 38 vs 90; 4 x 128 x 160, 64 -> 64, 36 vs 61; the 1-channel
+input layer 6.5 vs 8.2; but Winograd's fewer multiply-adds stay ahead on the wide layers (4 x 64
+x 80, 128 -> 128: 29 vs 32; 4 x 16 x 20, 256 -> 512: 10.5 vs 22). Tests of the XLA ways and
+A/B benchmarks switch it off."""
+
+WINOGRAD_OVER_NATIVE_MIN_CHANNELS = 128 * 128
+"""Where the native kernel is available, 3x3 layers take Winograd only from this C_in x C_out
+up. Measured (2-core AVX-512 EPYC), ms Winograd / native: 4 x 128 x 160, 128 -> 64 channels,
+91 / 66; 2 x 74 x 74, 192 -> 64, 17 / 13; 4 x 64 x 80, 64 -> 128, 17 / 17; 1 x 64 x 80, 128
+-> 128, 7.6 / 8.7; 4 x 64 x 80, 128 -> 128, 29 / 32; 1 x 32 x 40, 256 -> 256, 5.1 / 8.5."""
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
 
@@ -121,6 +140,11 @@ def _pointwise_conv_fwd(x, kernel, precision):
 def _pointwise_conv_bwd(precision, residuals, g):
     x, kernel = residuals
     dx = jnp.einsum("...d,cd->...c", g, kernel, precision=precision)
+    # images (not the ViT's tokens): the native kernel reads x in place, no transposed copy
+    # (4 x 256 x 320, 32 -> 32 channels: 12 vs 20 ms; tokens, one long row: 7x slower)
+    if x.ndim == 4 and kernel_gradient_method(x.shape, g.shape, (1, 1), jnp.result_type(x, g)) == "native":
+        dkernel = native_conv.kernel_gradient_native(x, g, (1, 1), ((0, 0), (0, 0)))[0, 0]
+        return dx, dkernel.astype(kernel.dtype)
     x_t = materialize(x.reshape(-1, x.shape[-1]).T)
     dkernel = jnp.einsum("cp,pd->cd", x_t, g.reshape(-1, g.shape[-1]), precision=precision,
                          preferred_element_type=_accumulator(x, g))
@@ -190,11 +214,12 @@ _conv_stride1.defvjp(_conv_stride1_fwd, _conv_stride1_bwd)
 
 
 def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int = BLOCK_PIXELS):
-    """Gradient of a stride-1 convolution's kernel, by whichever of the four ways below was the
+    """Gradient of a stride-1 convolution's kernel, by whichever of the five ways below was the
     fastest for the layer's size on XLA:CPU (`experiments/bench_conv_grad.py`): Winograd's
-    F(3x3, 2x2) for wide 3x3 layers (`WINOGRAD_MIN_CHANNELS`), else one channels-first im2col
-    matmul when its im2col is at most `IM2COL_BYTES`, else a sum of one matmul per kernel tap
-    below `MIN_LOOP_PIXELS` output pixels, else the row-block loop.
+    F(3x3, 2x2) for wide 3x3 layers (`WINOGRAD_MIN_CHANNELS`), else the native kernel for
+    float32 layers whose output channels fit its tiles (`USE_NATIVE`, `native_conv`), else one
+    channels-first im2col matmul when its im2col is at most `IM2COL_BYTES`, else a sum of one
+    matmul per kernel tap below `MIN_LOOP_PIXELS` output pixels, else the row-block loop.
 
     Args:
       x: (B, H, W, C_in) the convolution's input.
@@ -206,9 +231,11 @@ def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int 
       (kh, kw, C_in, C_out) float32 (float64 for float64 operands): sum over b, i, j of
       x_pad[b, i + p, j + q, :] outer g[b, i, j, :].
     """
-    method = kernel_gradient_method(x.shape, g.shape, kernel_size)
+    method = kernel_gradient_method(x.shape, g.shape, kernel_size, jnp.result_type(x, g))
     if method == "winograd":
         return kernel_gradient_winograd(x, g, pads, block_pixels)
+    if method == "native":
+        return native_conv.kernel_gradient_native(x, g, kernel_size, pads)
     if method == "im2col":
         return kernel_gradient_im2col(x, g, kernel_size, pads)
     if method == "by_tap":
@@ -222,11 +249,17 @@ def _accumulator(x, g):
     return jnp.promote_types(jnp.promote_types(x.dtype, g.dtype), jnp.float32)
 
 
-def kernel_gradient_method(x_shape, g_shape, kernel_size) -> str:
-    """Which way `kernel_gradient` computes a layer's: 'winograd', 'im2col', 'by_tap' or
-    'row_blocks'. x_shape (B, H, W, C_in), g_shape (B, H', W', C_out), kernel_size (kh, kw)."""
-    if tuple(kernel_size) == (3, 3) and x_shape[-1] * g_shape[-1] >= WINOGRAD_MIN_CHANNELS:
+def kernel_gradient_method(x_shape, g_shape, kernel_size, dtype=jnp.float32) -> str:
+    """Which way `kernel_gradient` computes a layer's: 'winograd', 'native', 'im2col', 'by_tap'
+    or 'row_blocks'. x_shape (B, H, W, C_in), g_shape (B, H', W', C_out), kernel_size (kh, kw),
+    dtype the operands' (the native kernel is float32, on CPU)."""
+    native = (USE_NATIVE and jnp.dtype(dtype) == jnp.float32 and jax.default_backend() == "cpu"
+              and native_conv.available() and g_shape[-1] % native_conv.tile_channels() == 0)
+    wide = WINOGRAD_OVER_NATIVE_MIN_CHANNELS if native else WINOGRAD_MIN_CHANNELS
+    if tuple(kernel_size) == (3, 3) and x_shape[-1] * g_shape[-1] >= wide:
         return "winograd"
+    if native:
+        return "native"
     out_pixels = g_shape[0] * g_shape[1] * g_shape[2]
     if kernel_size[0] * kernel_size[1] * x_shape[-1] * out_pixels * 4 <= IM2COL_BYTES:
         return "im2col"

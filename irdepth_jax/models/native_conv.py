@@ -1,0 +1,120 @@
+"""A native CPU kernel for the kernel gradient of stride-1 convolutions (`native_conv.cc`),
+built on first use with the machine's C++ compiler (-O3 -march=native) and called through
+XLA's FFI as a custom call.
+
+XLA:CPU has no kernel-gradient convolution of its own that keeps up with oneDNN: `conv.py`
+computes it as im2col matmuls, which copy each input window twice per block (XLA does not fuse
+a concatenate of 9 slices) and run the skinny (k*k*C_in, pixels) @ (pixels, C_out) products
+at about half the matmul peak. The native kernel reads the input in place: register tiles of
+input x output channels accumulate each output row with fused multiply-adds.
+
+The built library is cached under ``$XDG_CACHE_HOME/irdepth_jax/native`` (default
+``~/.cache``), keyed by the source, the compiler, jaxlib and the CPU's model and flags (a
+-march=native build runs only on the CPU it was made for). With no compiler, a failed build or
+``IRDEPTH_NATIVE_KERNELS=0``, `available()` is False (with a warning for a failed build) and
+`conv.kernel_gradient` keeps its XLA ways.
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import os
+import platform
+import shutil
+import subprocess
+import sys
+import warnings
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+SOURCE = Path(__file__).with_name("native_conv.cc")
+DISABLE_ENV = "IRDEPTH_NATIVE_KERNELS"
+"""Set to 0 to never build or use the native kernel."""
+
+TARGET = "irdepth_conv_kernel_gradient"
+FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC")
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "irdepth_jax" / "native"
+
+
+def _cpu_signature() -> str:
+    """The CPU's model and feature flags (what -march=native compiles for)."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = [line for line in f if line.startswith(("model name", "flags", "Features", "CPU part"))]
+        return "".join(sorted(set(lines)))
+    except OSError:
+        return platform.processor() + platform.machine()
+
+
+def _compiler() -> str | None:
+    return os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++") or shutil.which("clang++")
+
+
+def _build(compiler: str) -> Path:
+    """Compiles the kernel into the cache (once per source, compiler, jaxlib and CPU); its path."""
+    version = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60).stdout
+    key = hashlib.sha256("\0".join([SOURCE.read_text(), compiler, version, jax.__version__, " ".join(FLAGS),
+                                    _cpu_signature()]).encode()).hexdigest()[:16]
+    target = cache_dir() / f"native_conv_{key}.so"
+    if target.exists():
+        return target
+    target.parent.mkdir(parents=True, exist_ok=True)
+    partial = target.with_suffix(f".{os.getpid()}.tmp")
+    command = [compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(SOURCE), "-o", str(partial)]
+    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+    if result.returncode != 0:
+        partial.unlink(missing_ok=True)
+        raise RuntimeError(f"{' '.join(command)} exited {result.returncode}: {result.stderr.strip()[-2000:]}")
+    os.replace(partial, target)  # atomic: concurrent builders (test workers) each write their own
+    return target
+
+
+@functools.cache
+def _library() -> ctypes.CDLL | None:
+    if os.environ.get(DISABLE_ENV) == "0" or not sys.platform.startswith(("linux", "darwin")):
+        return None
+    compiler = _compiler()
+    if compiler is None:
+        return None
+    try:
+        library = ctypes.CDLL(str(_build(compiler)))
+        jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(library.IrdepthConvKernelGradient), platform="cpu")
+    except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+        warnings.warn(f"irdepth_jax: the native convolution kernel could not be built or loaded, so XLA's "
+                      f"kernel gradients are used ({e}); set {DISABLE_ENV}=0 to skip the attempt",
+                      RuntimeWarning, stacklevel=2)
+        return None
+    return library
+
+
+def available() -> bool:
+    """Whether the native kernel is built and registered (builds it on the first call)."""
+    return _library() is not None
+
+
+def tile_channels() -> int:
+    """The kernel takes layers whose output channels are a multiple of this (32 with AVX-512,
+    16 with AVX); 0 when it is not available."""
+    library = _library()
+    return int(library.IrdepthConvTileChannels()) if library is not None else 0
+
+
+def kernel_gradient_native(x, g, kernel_size: tuple[int, int], pads):
+    """`conv.kernel_gradient` by the native kernel: x (B, H, W, C_in) and g (B, H', W', C_out)
+    float32, C_out a multiple of `tile_channels()`; pads ((top, bottom), (left, right)) ->
+    (kh, kw, C_in, C_out) float32. Needs `available()`; CPU only."""
+    if not available():
+        raise RuntimeError(f"the native convolution kernel is not available (no C++ compiler, a failed build, "
+                           f"or {DISABLE_ENV}=0)")
+    (top, _), (left, _) = pads
+    out = jax.ShapeDtypeStruct((*kernel_size, x.shape[-1], g.shape[-1]), jnp.float32)
+    return jax.ffi.ffi_call(TARGET, out, vmap_method="sequential")(x, g, top=np.int64(top), left=np.int64(left))

@@ -1,0 +1,142 @@
+"""The native kernel gradient (`irdepth_jax.models.native_conv`, a C++ XLA FFI custom call built
+on first use) against a float64 numpy sum worked from the definition, and against autodiff of
+`lax.conv_general_dilated`; where `conv.kernel_gradient` takes it; what happens without it.
+
+The kernel tiles input channels by up to 12 (AVX-512; 6 elsewhere) and output channels by 32
+(16), so the cases use input channel counts that leave remainders (1, 13, 40) and one and two
+output tiles, odd image sizes, asymmetric paddings and paddings wider than the kernel.
+"""
+
+import os
+import subprocess
+import sys
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from jax import lax
+
+from irdepth_jax.models import conv, native_conv
+
+NHWC = ("NHWC", "HWIO", "NHWC")
+
+needs_native = pytest.mark.skipif(
+    not native_conv.available(),
+    reason="the native kernel could not be built here (no C++ compiler, or IRDEPTH_NATIVE_KERNELS=0)")
+
+
+def kernel_gradient_by_definition(x, g, kernel_size, pads):
+    """float64 numpy: dw[p, q, c, d] = sum_{b,i,j} x_pad[b, i + p, j + q, c] g[b, i, j, d]."""
+    x, g = np.asarray(x, np.float64), np.asarray(g, np.float64)
+    (top, bottom), (left, right) = pads
+    x_pad = np.pad(x, ((0, 0), (top, bottom), (left, right), (0, 0)))
+    kh, kw = kernel_size
+    out_h, out_w = g.shape[1:3]
+    return np.stack([np.stack([np.einsum("bhwc,bhwd->cd", x_pad[:, p:p + out_h, q:q + out_w], g)
+                               for q in range(kw)]) for p in range(kh)])
+
+
+def case(batch, height, width, c_in, c_out, kernel_size, pads, seed=0):
+    kh, kw = kernel_size
+    out_h = height + sum(pads[0]) - kh + 1
+    out_w = width + sum(pads[1]) - kw + 1
+    rng = np.random.default_rng(seed)
+    return (jnp.asarray(rng.standard_normal((batch, height, width, c_in)), jnp.float32),
+            jnp.asarray(rng.standard_normal((batch, out_h, out_w, c_out)), jnp.float32))
+
+
+@needs_native
+@pytest.mark.parametrize("kernel_size, pads", [
+    ((3, 3), ((1, 1), (1, 1))), ((3, 3), ((2, 0), (0, 1))), ((3, 2), ((2, 0), (0, 1))),
+    ((5, 5), ((2, 1), (0, 3))), ((3, 3), ((3, 0), (1, 4))), ((1, 1), ((0, 0), (0, 0)))])
+@pytest.mark.parametrize("c_in", [1, 13, 40])
+def test_native_kernel_gradient_matches_the_definition(kernel_size, pads, c_in):
+    tile = native_conv.tile_channels()
+    for c_out in (tile, 2 * tile):
+        x, g = case(2, 11, 9, c_in, c_out, kernel_size, pads)
+        got = jax.jit(native_conv.kernel_gradient_native, static_argnums=(2, 3))(x, g, kernel_size, pads)
+        want = kernel_gradient_by_definition(x, g, kernel_size, pads)
+        assert got.shape == want.shape and got.dtype == jnp.float32
+        np.testing.assert_allclose(np.asarray(got), want, rtol=0, atol=2e-6 * np.abs(want).max(),
+                                   err_msg=f"c_out={c_out}")
+
+
+@needs_native
+def test_native_kernel_gradient_is_deterministic_and_matches_autodiff_on_a_large_layer():
+    """Several rows of tiles shared among the intra-op threads: the same bits on every call,
+    and XLA's own kernel gradient to float32 rounding."""
+    pads = ((1, 1), (1, 1))
+    x, g = case(2, 40, 56, 64, 64, (3, 3), pads, seed=1)
+    native = jax.jit(native_conv.kernel_gradient_native, static_argnums=(2, 3))
+    first = np.asarray(native(x, g, (3, 3), pads))
+    for _ in range(3):
+        np.testing.assert_array_equal(np.asarray(native(x, g, (3, 3), pads)), first)
+    kernel = jnp.zeros((3, 3, 64, 64))
+    want = jax.jit(lambda g: jax.vjp(lambda k: lax.conv_general_dilated(
+        x, k, (1, 1), pads, dimension_numbers=NHWC), kernel)[1](g)[0])(g)
+    np.testing.assert_allclose(first, np.asarray(want), rtol=0, atol=1e-5 * float(jnp.abs(want).max()))
+
+
+@needs_native
+def test_where_the_kernel_gradient_takes_the_native_kernel(monkeypatch):
+    method, tile = conv.kernel_gradient_method, native_conv.tile_channels()
+    assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)) == "native"  # the UNet's full-resolution layers
+    assert method((4, 128, 160, 128), (4, 128, 160, 64), (3, 3)) == "native"
+    assert method((4, 256, 320, 1), (4, 256, 320, 32), (3, 3)) == "native"  # the 1-channel input layer
+    assert method((4, 64, 80, 128), (4, 64, 80, 128), (3, 3)) == "winograd"  # wide: fewer multiply-adds
+    assert method((4, 256, 320, 64), (4, 256, 320, tile + 1), (3, 3)) != "native"  # not whole tiles
+    assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3), jnp.float64) != "native"
+    assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3), jnp.bfloat16) != "native"
+    monkeypatch.setattr(conv, "USE_NATIVE", False)
+    assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)) == "row_blocks"
+    assert method((4, 128, 160, 128), (4, 128, 160, 64), (3, 3)) == "winograd"
+
+
+@needs_native
+@pytest.mark.parametrize("kernel_size", [(3, 3), (1, 1)])
+def test_conv_module_with_the_native_kernel_matches_flax(kernel_size):
+    """`conv.Conv`'s parameter gradient through the native kernel (3x3 and the 1x1 einsum's
+    backward on images) against `flax.linen.Conv`'s autodiff; the jaxpr has the custom call."""
+    features = native_conv.tile_channels()
+    x = jnp.asarray(np.random.default_rng(2).standard_normal((2, 13, 10, 7)), jnp.float32)
+    ours, theirs = (cls(features, kernel_size, padding="SAME") for cls in (conv.Conv, nn.Conv))
+    params = theirs.init(jax.random.key(0), x)
+    w = jnp.asarray(np.random.default_rng(3).standard_normal((2, 13, 10, features)), jnp.float32)
+
+    def grads(module):
+        return jax.jit(jax.grad(lambda p, x: jnp.sum(w * module.apply(p, x)), (0, 1)))(params, x)
+
+    for got, want in zip(jax.tree.leaves(grads(ours)), jax.tree.leaves(grads(theirs))):
+        np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0,
+                                   atol=2e-6 * float(jnp.abs(want).max()))
+    jaxpr = str(jax.make_jaxpr(jax.grad(lambda p, x: jnp.sum(w * ours.apply(p, x))))(params, x))
+    assert native_conv.TARGET in jaxpr
+
+
+def _in_subprocess(code: str, **env) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu", **env})
+
+
+def test_switched_off_or_unbuildable_the_kernel_gradient_keeps_its_xla_ways(tmp_path):
+    code = ("import warnings; warnings.simplefilter('always')\n"
+            "from irdepth_jax.models import conv, native_conv\n"
+            "print(native_conv.available(), conv.kernel_gradient_method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)))")
+    off = _in_subprocess(code, IRDEPTH_NATIVE_KERNELS="0")
+    assert off.returncode == 0, off.stderr
+    assert off.stdout.split() == ["False", "row_blocks"]
+    # a compiler that fails: a warning that says so, and the XLA ways (an empty cache: no old build)
+    failing = _in_subprocess(code, CXX="false", XDG_CACHE_HOME=str(tmp_path))
+    assert failing.returncode == 0, failing.stderr
+    assert failing.stdout.split() == ["False", "row_blocks"]
+    assert "native convolution kernel could not be built" in failing.stderr
+    assert not list(tmp_path.rglob("*.so"))
+
+
+def test_calling_the_native_kernel_without_it_says_why(monkeypatch):
+    monkeypatch.setattr(native_conv, "available", lambda: False)
+    x, g = case(1, 4, 4, 2, 32, (3, 3), ((1, 1), (1, 1)))
+    with pytest.raises(RuntimeError, match="not available"):
+        native_conv.kernel_gradient_native(x, g, (3, 3), ((1, 1), (1, 1)))
