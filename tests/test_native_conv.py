@@ -120,6 +120,26 @@ def _in_subprocess(code: str, **env) -> subprocess.CompletedProcess:
                           env={**os.environ, "JAX_PLATFORMS": "cpu", **env})
 
 
+@needs_native
+def test_a_fresh_machine_builds_the_kernel_into_its_cache(tmp_path):
+    """An empty cache (a user's first run): the kernel is compiled there and gives the same
+    bits as the build this process loaded."""
+    pads = ((1, 1), (1, 1))
+    x, g = case(1, 6, 5, 3, native_conv.tile_channels(), (3, 3), pads)
+    np.save(tmp_path / "x.npy", np.asarray(x))
+    np.save(tmp_path / "g.npy", np.asarray(g))
+    code = ("import numpy as np, jax\n"
+            "from irdepth_jax.models import native_conv\n"
+            f"x, g = np.load({str(tmp_path / 'x.npy')!r}), np.load({str(tmp_path / 'g.npy')!r})\n"
+            f"np.save({str(tmp_path / 'dw.npy')!r}, np.asarray(jax.jit(native_conv.kernel_gradient_native, "
+            f"static_argnums=(2, 3))(x, g, (3, 3), {pads!r})))")
+    built = _in_subprocess(code, XDG_CACHE_HOME=str(tmp_path / "cache"))
+    assert built.returncode == 0, built.stderr
+    assert len(list((tmp_path / "cache" / "irdepth_jax" / "native").glob("native_conv_*.so"))) == 1
+    here = jax.jit(native_conv.kernel_gradient_native, static_argnums=(2, 3))(x, g, (3, 3), pads)
+    np.testing.assert_array_equal(np.load(tmp_path / "dw.npy"), np.asarray(here))
+
+
 def test_switched_off_or_unbuildable_the_kernel_gradient_keeps_its_xla_ways(tmp_path):
     code = ("import warnings; warnings.simplefilter('always')\n"
             "from irdepth_jax.models import conv, native_conv\n"
