@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from irdepth_jax.hostmem import keep_freed_memory
+from irdepth_jax.models import native_conv
 
 
 def compiled_with_seconds(jitted, *args):
@@ -25,11 +26,13 @@ def compiled_with_seconds(jitted, *args):
 
 
 def flops_of(compiled) -> float:
-    """XLA's FLOP count of one call of a compiled executable (2 per multiply-add)."""
+    """XLA's FLOP count of one call of a compiled executable (2 per multiply-add), with the
+    native kernel gradient's calls, which XLA's cost analysis counts as none
+    (`native_conv.flops_in`)."""
     cost = compiled.cost_analysis()
     if isinstance(cost, (list, tuple)):  # older jaxlibs: one dict per device program
         cost = cost[0]
-    return float(cost["flops"])
+    return float(cost["flops"]) + native_conv.flops_in(compiled.as_text())
 
 
 def wall_seconds(fn) -> float:

@@ -160,3 +160,18 @@ def test_calling_the_native_kernel_without_it_says_why(monkeypatch):
     x, g = case(1, 4, 4, 2, 32, (3, 3), ((1, 1), (1, 1)))
     with pytest.raises(RuntimeError, match="not available"):
         native_conv.kernel_gradient_native(x, g, (3, 3), ((1, 1), (1, 1)))
+
+
+@needs_native
+def test_the_kernels_flops_are_counted_as_xla_counts_the_matmuls_they_replace(monkeypatch):
+    """XLA's cost analysis counts a custom call as no FLOPs; `flops_in` adds 2 x kh*kw*C_in*C_out x
+    B*H'*W' per call, so the benchmarks' GFLOP/s keep counting the same arithmetic."""
+    x, k = jnp.ones((2, 16, 20, 8)), jnp.ones((3, 3, 8, 32))
+
+    def loss(x, k):
+        return jnp.sum(conv.conv_general_dilated(x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC) ** 2)
+
+    text = jax.jit(jax.grad(loss, 1)).lower(x, k).compile().as_text()
+    assert native_conv.flops_in(text) == 2 * 9 * 8 * 32 * (2 * 16 * 20)
+    monkeypatch.setattr(conv, "USE_NATIVE", False)
+    assert native_conv.flops_in(jax.jit(jax.grad(loss, 1)).lower(x, k).compile().as_text()) == 0

@@ -20,8 +20,10 @@ from __future__ import annotations
 import ctypes
 import functools
 import hashlib
+import math
 import os
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -106,6 +108,24 @@ def tile_channels() -> int:
     16 with AVX); 0 when it is not available."""
     library = _library()
     return int(library.IrdepthConvTileChannels()) if library is not None else 0
+
+
+def flops_in(hlo_text: str) -> float:
+    """FLOPs of the native kernel's calls in a compiled module's text (2 per multiply-add, as
+    XLA counts), which XLA's cost analysis leaves out of a custom call: 2 x kh*kw*C_in*C_out x
+    B*H'*W' per call (its result (kh, kw, C_in, C_out) and its second operand (B, H', W', C_out))."""
+    total = 0.0
+    for line in hlo_text.splitlines():
+        if f'custom_call_target="{TARGET}"' not in line:
+            continue
+        result = re.search(r"= f32\[([\d,]+)\]", line)
+        operands = re.search(r"operand_layout_constraints=\{f32\[[\d,]+\]\{[\d,]*\}, f32\[([\d,]+)\]", line)
+        if not (result and operands):
+            raise ValueError(f"unexpected {TARGET} call in HLO: {line.strip()[:200]}")
+        weights = math.prod(int(v) for v in result.group(1).split(","))
+        pixels = math.prod(int(v) for v in operands.group(1).split(",")[:3])
+        total += 2.0 * weights * pixels
+    return total
 
 
 def kernel_gradient_native(x, g, kernel_size: tuple[int, int], pads):
