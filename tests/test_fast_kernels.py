@@ -1,7 +1,8 @@
 """The CPU performance kernels against independent references, under jit, on tiny shapes.
 
 `irdepth_jax.models.conv`: `Conv` against `flax.linen.Conv` (parameters, forward, gradients; each
-of the kernel gradient's four ways, the 1x1 einsum, the stride-2 fallback), `kernel_gradient`'s
+of the kernel gradient's four XLA ways (the fifth, the native kernel: test_native_conv.py), the
+1x1 einsum, the stride-2 fallback), `kernel_gradient`'s
 im2col, per-tap, row-block (both layouts) and Winograd ways and `input_gradient` against autodiff of
 `lax.conv_general_dilated`,
 `upsample_by_matmul` against its formula in numpy loops, `ConvTranspose` against
