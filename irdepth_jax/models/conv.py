@@ -216,7 +216,8 @@ _conv_stride1.defvjp(_conv_stride1_fwd, _conv_stride1_bwd)
 def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int = BLOCK_PIXELS):
     """Gradient of a stride-1 convolution's kernel, by whichever of the five ways below was the
     fastest for the layer's size on XLA:CPU (`experiments/bench_conv_grad.py`): Winograd's
-    F(3x3, 2x2) for wide 3x3 layers (`WINOGRAD_MIN_CHANNELS`), else the native kernel for
+    F(3x3, 2x2) for wide 3x3 layers (`WINOGRAD_MIN_CHANNELS`, or
+    `WINOGRAD_OVER_NATIVE_MIN_CHANNELS` where the native kernel would serve), else the native kernel for
     float32 layers whose output channels fit its tiles (`USE_NATIVE`, `native_conv`), else one
     channels-first im2col matmul when its im2col is at most `IM2COL_BYTES`, else a sum of one
     matmul per kernel tap below `MIN_LOOP_PIXELS` output pixels, else the row-block loop.
