@@ -32,6 +32,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import jaxlib
 import numpy as np
 
 SOURCE = Path(__file__).with_name("native_conv.cc")
@@ -64,7 +65,7 @@ def _compiler() -> str | None:
 def _build(compiler: str) -> Path:
     """Compiles the kernel into the cache (once per source, compiler, jaxlib and CPU); its path."""
     version = subprocess.run([compiler, "--version"], capture_output=True, text=True, timeout=60).stdout
-    key = hashlib.sha256("\0".join([SOURCE.read_text(), compiler, version, jax.__version__, " ".join(FLAGS),
+    key = hashlib.sha256("\0".join([SOURCE.read_text(), compiler, version, jaxlib.__version__, " ".join(FLAGS),
                                     _cpu_signature()]).encode()).hexdigest()[:16]
     target = cache_dir() / f"native_conv_{key}.so"
     if target.exists():
