@@ -256,9 +256,11 @@ def test_train_on_a_full_disk_names_the_disk_and_the_last_checkpoint(data, tmp_p
 @pytest.mark.parametrize("room", [0.6, 2.5])
 def test_train_on_a_full_tmpfs(data, reference, tmp_path, capsys, caplog, room):
     """A tmpfs with room for 0.6 checkpoints (the first save fails in orbax's threads) or 2.5
-    (two saves, then the disk is full: refused up front, or failing in orbax when the second
-    checkpoint outgrew the first): one line naming the mount and the last finished checkpoint,
-    no traceback, not even in the log, and every finished checkpoint restores."""
+    (one to three saves, then the disk is full: refused up front, or failing in orbax when a
+    checkpoint outgrew the one before; a checkpoint's size varies with orbax's file layout,
+    720-945 KB, so the room is not an exact count): one line naming the mount and the last
+    finished checkpoint, no traceback, not even in the log, and every finished checkpoint
+    restores."""
     size = checkpoint_bytes(reference / "checkpoints" / "stage1_i1" / "4")
     assert size > 100_000
     with tiny_disk(tmp_path / "disk", int(room * size / 1024) + 16) as disk:
@@ -266,7 +268,8 @@ def test_train_on_a_full_tmpfs(data, reference, tmp_path, capsys, caplog, room):
         code, _, err = run(train(data, work), capsys)
         directory = work / "checkpoints" / "stage1_i1"
         steps = sorted(int(n) for n in os.listdir(directory) if n.isdigit())
-        assert steps == [] if room < 1 else steps in ([1], [1, 2]), steps
+        # room < 1: none; else a first run of steps that ends before the stage's last (4)
+        assert steps == [] if room < 1 else steps in ([1], [1, 2], [1, 2, 3]), steps
         then = (f"the last good checkpoint is {directory} step {steps[-1]}" if steps
                 else "no checkpoint was finished")
         ends_with_one_error(code, err, f"no space left on the disk mounted at {disk} (", then)
