@@ -27,12 +27,11 @@ DEFAULT_FILES = ("bench_unet.json", "bench_unet_512x640.json", "bench_unet_512x6
 
 def _row(what: str, ours_ms: float, torch_ms: float, flops: float, peak: float, target: float) -> dict:
     target_ms = target * torch_ms
+    ours_gflops, needed_gflops = flops / ours_ms / 1e6, flops / target_ms / 1e6
     return {"what": what, "ours_ms": ours_ms, "torch_ms": torch_ms, "ratio": ours_ms / torch_ms,
-            "target_ms": target_ms, "gflop": flops / 1e9,
-            "ours_gflops": flops / ours_ms / 1e6, "needed_gflops": flops / target_ms / 1e6,
-            "peak_gflops": peak,
-            "ours_peak_pct": 100.0 * flops / ours_ms / 1e6 / peak,
-            "needed_peak_pct": 100.0 * flops / target_ms / 1e6 / peak}
+            "target_ms": target_ms, "gflop": flops / 1e9, "ours_gflops": ours_gflops,
+            "needed_gflops": needed_gflops, "peak_gflops": peak,
+            "ours_peak_pct": 100.0 * ours_gflops / peak, "needed_peak_pct": 100.0 * needed_gflops / peak}
 
 
 def target_rows(summary: dict, target: float = 0.8) -> list[dict]:

@@ -71,8 +71,10 @@ def main() -> None:
         args = (rng.random((b, h, w, ci), np.float32), rng.random((3, 3, ci, co), np.float32),
                 rng.random((b, h, w, co), np.float32))
         use_native, conv.USE_NATIVE = conv.USE_NATIVE, False
-        xla_ways_call = xla_ways.lower(*args).compile()
-        conv.USE_NATIVE = use_native
+        try:
+            xla_ways_call = xla_ways.lower(*args).compile()
+        finally:
+            conv.USE_NATIVE = use_native
         calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours, xla_ways_call)]
         if with_torch:
             calls.append(torch_kernel_gradient_call(*args))
