@@ -292,79 +292,24 @@ def test_i1_config_ignores_only_i2_settings():
     assert cache.i1_config(no_rgg, base) != cache.i1_config(base, base)
 
 
-def test_bootstrap_signs_and_a_constant_difference():
-    """ours = base + 0.1 on every frame and seed: effect 0.1 with a zero-width interval; a
-    lower-is-better column counts a decrease as agreement."""
-    base = [np.linspace(0.2, 0.8, 50), np.linspace(0.3, 0.7, 50)]
-    up = claims.bootstrap([b + 0.1 for b in base], base, "d1", replicates=500)
-    assert up["effect"] == pytest.approx(0.1) and up["seeds"] == 2 and up["frames"] == 50
-    assert up["low"] == pytest.approx(0.1) and up["high"] == pytest.approx(0.1)
-    down = claims.bootstrap([b - 0.1 for b in base], base, "abs_rel", replicates=500)
-    assert down["effect"] == pytest.approx(0.1)  # lower AbsRel favours `ours`
-    nan = [np.r_[b[:-1], np.nan] for b in base]  # a frame without valid pixels is dropped
-    assert claims.bootstrap([b + 0.1 for b in nan], nan, "d1", replicates=200)["frames"] == 49
-
-
-def test_bootstrap_standard_error_matches_the_formula():
-    """One seed, iid frame differences of std sigma: the bootstrap SE of the mean is
-    sigma / sqrt(F) (within its own sampling error), the detectable effect 2.80 x that."""
-    rng = np.random.default_rng(0)
-    frames, sigma = 400, 0.05
-    base = rng.uniform(0.3, 0.7, frames)
-    ours = base + 0.01 + sigma * rng.standard_normal(frames)
-    stats = claims.bootstrap([ours], [base], "d1", replicates=4000)
-    sd = float(np.std(ours - base, ddof=0))
-    assert stats["effect"] == pytest.approx(float(np.mean(ours - base)))
-    assert stats["se"] == pytest.approx(sd / math.sqrt(frames), rel=0.08)
-    assert stats["detectable"] == pytest.approx(2.8016 * stats["se"], rel=1e-4)
-    assert stats["low"] < stats["effect"] < stats["high"]
-
-
-def test_bootstrap_seed_spread_widens_the_interval():
-    """Seeds that disagree (+0.05 and -0.05) give an interval containing 0, however many
-    frames; seeds that agree exclude it."""
-    base = [np.full(300, 0.5)] * 3
-    mixed = claims.bootstrap([base[0] + 0.05, base[1] - 0.05, base[2] + 0.05], base, "d1",
-                             replicates=2000)
-    assert mixed["low"] < 0 < mixed["high"]
-    agree = claims.bootstrap([b + 0.05 for b in base], base, "d1", replicates=2000)
-    assert agree["low"] > 0
-
-
-def test_bootstrap_miou_pools_confusion_matrices():
-    """mIoU claims resample frames' confusion matrices and pool them (not a mean of per-frame
-    IoUs): two classes, `ours` perfect, `base` confusing half of class 1."""
-    perfect = np.array([[10, 0], [0, 10]])
-    half = np.array([[10, 0], [5, 5]])
-    stats = claims.bootstrap([np.stack([perfect] * 20)], [np.stack([half] * 20)], "miou",
-                             replicates=300)
-    # base IoU: class 0 = 10 / 15, class 1 = 5 / 10 -> mIoU 7/12; ours 1
-    assert stats["effect"] == pytest.approx(1 - 7 / 12, rel=1e-5)
-
-
-def test_verdicts():
-    stats = {"low": 0.01, "high": 0.05, "detectable": 0.02}
-    assert claims.verdict(stats, 0.03) == "reproduced"
-    assert claims.verdict({**stats, "low": -0.05, "high": -0.01}, 0.03) == "opposite"
-    assert claims.verdict({**stats, "low": -0.01}, 0.01) == "undecided at this budget"
-    assert claims.verdict({**stats, "low": -0.01}, 0.03) == "not reproduced"
-    assert claims.verdict(stats, -0.002).startswith("no claim")
-
-
 def test_claims_script_lists_every_claim(quick_results, tmp_path):
     """Every claim of the tables this session ran (all seven with -m slow)."""
     results = os.path.dirname(quick_results[DEFAULT_TABLES[0]][1])
-    claims.main(["--results", results, "--out", str(tmp_path / "claims.md"),
-                 "--replicates", "200"])
+    claims.main(["--results", results, "--out", str(tmp_path / "claims.md")])
     text = (tmp_path / "claims.md").read_text()
-    expected = claims.check_claims(claims.load_results(results), replicates=200)
+    written = json.loads((tmp_path / "claims.json").read_text())["claims"]
+    expected = claims.check_claims(claims.load_results(results))
     ran = set(quick_results.done)
     assert {c.table for c in claims.CLAIMS} >= set(DEFAULT_TABLES)
     assert len(expected) == sum(c.table in ran for c in claims.CLAIMS) > 0
     assert "SYNTHETIC" in text
-    for c in expected:
+    assert [(w["table"], w["metric"], w["verdict"]) for w in written] == \
+        [(c["table"], c["metric"], c["verdict"]) for c in expected]
+    for c, w in zip(expected, written):
         assert f"| {c['claim']} | {c['table']} | {c['paper_effect']:+.4f} | {c['effect']:+.4f} [" in text
         assert f"| {c['verdict']} |" in text
+        # one seed (--quick): no interval (null in the JSON), so no verdict of direction
+        assert c["verdict"] in ("undecided", "no claim") and w["interval"] == [None, None]
         # the effect is the difference of the table's own per-seed means
         rows = {(r["series"], r["group"]): r for r in quick_results[c["table"]][0]["rows"]}
         claim = next(k for k in claims.CLAIMS if k.text == c["claim"] and k.table == c["table"])

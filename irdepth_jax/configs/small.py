@@ -20,12 +20,12 @@ def get_config() -> Config:
     the other table*.py scripts, whose default preset this is); also
     ``irdepth train stage1 --preset small --data DIR --workdir runs/s1``.
 
-    Measured (results.json of those tables, 2-core AMD EPYC CPU, jax 0.10.2, git a18ca70): one
-    Stage I run 31-87 s, one Stage II run 28-76 s, training + evaluation; the 30 runs the seven
-    tables read 1,185 s (about 20 minutes) in all.
+    Expect about 2 hours on 2 CPU cores for the seven tables x 3 seeds (33 training runs and
+    their evaluations, all cached); each table's `results.json` records its own wall time
+    (`wall_s`) and the machine. The depth network is the 192-wide ViT above, not ViT-S: a
+    released ViT-S checkpoint needs ``depth.encoder=vits`` beside ``depth.checkpoint=PATH``.
     """
-    # Sized so that the seven experiment tables x 3 seeds run in about half an hour on 2 CPU
-    # cores. Stage II rate: from a random-init ViT, 1e-4 (head 1e-3) drove the metric head's
+    # Stage II rate: from a random-init ViT, 1e-4 (head 1e-3) drove the metric head's
     # sigmoid into saturation (prediction ~max_depth everywhere, zero gradient) within 10 steps
     # on 2 of 3 seeds; 3e-5 trained on all of them.
     return Config(
