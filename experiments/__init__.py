@@ -5,7 +5,7 @@
 * `experiments.cache`: the datasets (training data and the separate evaluation set) and the
   cached training runs a table reads (`Context`, `context` for notebooks);
 * `experiments.report`: a table's outputs (results.md / .json, frames.npz, figure.png);
-* `experiments.claims`: the paper's claims, paired bootstrap intervals, detectable effects and
+* `experiments.claims`: the paper's claims, seed-level intervals, detectable effects and
   verdicts (``python experiments/claims.py``).
 
 Installed with the package (``pip install -e .``): notebooks and tests import it as

@@ -10,7 +10,7 @@ Layout of a cache directory (``--cache``, default ``workdir/experiments``):
   covers every config field, so a run is reused by every table that needs it (the Stage I model
   of a seed is shared by tables 1-7) and an interrupted run resumes from its last checkpoint;
 * ``runs/.../eval-<hash>.json`` + ``.npz``: the run's metrics on one evaluation set under one
-  protocol (aggregated, and per frame for the bootstrap in `experiments.claims`);
+  protocol (aggregated, and per frame for `experiments.claims`);
 * ``xla/``: JAX's persistent compilation cache.
 
 Run kinds: ``stage1_i1`` (Stage I-1 only: the single-task model of table 2), ``stage1`` (I-1

@@ -1,6 +1,6 @@
 """A table's outputs: results.md (mean +- std over seeds, per-seed values, the paper's figures,
 provenance), results.json, frames.npz (the per-frame metrics of every row and seed, which
-`experiments.claims` bootstraps) and figure.png (bars = mean, error bars = std over seeds, dots =
+`experiments.claims` reduces to per-seed differences) and figure.png (bars = mean, error bars = std over seeds, dots =
 seeds)."""
 
 from __future__ import annotations
