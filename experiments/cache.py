@@ -124,18 +124,20 @@ class Context:
         return source, {**info, "format": source.format}
 
     def _render(self, name: str, n: int, labeled: int, seed: int, split: str | None):
-        from irdepth_jax.data.folder import write_synthetic_dataset
+        from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
         d = self.base.data
-        path = os.path.join(self.cache, "data", f"{name}-{d.height}x{d.width}-seed{seed}")
+        scenes = "" if d.scenes == "street" else f"-{d.scenes}"  # the 'street' caches keep their names
+        path = os.path.join(self.cache, "data", f"{name}-{d.height}x{d.width}-seed{seed}{scenes}")
         info = {"source": "synthetic", "path": path, "num_frames": n, "num_labeled": labeled,
-                "height": d.height, "width": d.width, "seed": seed, "split": split,
+                "height": d.height, "width": d.width, "seed": seed, "split": split, "scenes": d.scenes,
                 "made_by": f"write_synthetic_dataset(path, {n}, {labeled}, {d.height}, {d.width}, "
-                           f"seed={seed}, split={split!r})"}
+                           f"seed={seed}, split={split!r}, scenes={d.scenes!r})"}
         if not os.path.exists(os.path.join(path, "manifest.json")):  # manifest is written last
             self.log(f"rendering {n} synthetic frames ({d.height}x{d.width}) into {path}")
             write_synthetic_dataset(path, n, labeled, d.height, d.width, seed=seed,
-                                    progress=not self.args.no_progress, overwrite=True, split=split)
+                                    progress=not self.args.no_progress, overwrite=True, split=split,
+                                    scenes=d.scenes)
         return path, info
 
     # ---------------------------------------------------------------- configs

@@ -113,8 +113,10 @@ def cmd_synth(args) -> int:
 
     height, width = args.size
     path = write_synthetic_dataset(args.out, args.n, args.labeled, height, width, seed=args.seed,
-                                   progress=not args.no_progress, overwrite=args.overwrite)
-    print(f"wrote {args.n} frames ({args.labeled} labelled, {height}x{width}) to {path}")
+                                   progress=not args.no_progress, overwrite=args.overwrite,
+                                   scenes=args.scenes)
+    print(f"wrote {args.n} frames ({args.labeled} labelled, {height}x{width}, {args.scenes} scenes) "
+          f"to {path}")
     return 0
 
 

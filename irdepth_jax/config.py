@@ -83,6 +83,10 @@ class DataConfig:
     width: int = 320
     num_frames: int = 2292  # synthetic: total frames (Stage II split 1500/400/392)
     num_labeled: int = 800  # synthetic: labelled frames (600/100/100)
+    # synthetic: the renderer's scene distribution, 'street' (one straight street, a level camera
+    # at ~1.5 m: what every committed result used) or 'varied' (camera height, field of view,
+    # horizon and roll per frame; crossings, open ground, close obstacles).
+    scenes: str = "street"
     augment: bool = True
     min_depth: float = 1e-3
     max_depth: float = 80.0

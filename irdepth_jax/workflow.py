@@ -33,7 +33,7 @@ def synthetic_data(cfg: Config, path: str, progress: bool = True) -> str:
 
     d = cfg.data
     write_synthetic_dataset(path, d.num_frames, d.num_labeled, d.height, d.width, seed=cfg.seed,
-                            progress=progress)
+                            progress=progress, scenes=d.scenes)
     return path
 
 

@@ -57,12 +57,14 @@ class SyntheticLabeled:
       seed: frame i is rendered from (seed, i); conditions cycle day, dusk, night.
       raw_bits: 16 scales the renderer's 14-bit counts by 4, so that a fixed normalisation of
         16-bit data sees them at the same level.
+      scenes: the renderer's scene distribution ('street' or 'varied').
     """
 
-    def __init__(self, n: int, height: int, width: int, seed: int = 0, raw_bits: int = 14):
+    def __init__(self, n: int, height: int, width: int, seed: int = 0, raw_bits: int = 14,
+                 scenes: str = "street"):
         if n < 1:
             raise ValueError(f"stage1.synthetic_labeled must be >= 1, got {n}")
-        self.n, self.height, self.width, self.seed = n, height, width, seed
+        self.n, self.height, self.width, self.seed, self.scenes = n, height, width, seed, scenes
         self.gain = 4 if int(raw_bits) == 16 else 1
 
     def __len__(self) -> int:
@@ -75,7 +77,7 @@ class SyntheticLabeled:
             raise IndexError(f"frame {i} of {self.n}")
         condition = CONDITIONS[i % len(CONDITIONS)]
         frame_seed = int(np.random.SeedSequence([self.seed, 0x5E6, i]).generate_state(1)[0])
-        s = render_scene(frame_seed, condition, self.height, self.width)
+        s = render_scene(frame_seed, condition, self.height, self.width, self.scenes)
         return dict(raw14=(s["raw14"] * self.gain).astype(np.uint16), ir8=s["ir8"], rgb=s["rgb"],
                     has_rgb=True, depth=s["depth_lidar"], valid=s["valid"], seg=s["seg"],
                     labeled=True, condition=condition, id=f"synthetic_{i:06d}")

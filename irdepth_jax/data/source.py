@@ -187,7 +187,7 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
     size = tuple(np.shape(train_ds[int(train_idx[0])]["raw14"]))  # extra frames get this size
     if choice == "synthetic":
         extra = SyntheticLabeled(cfg.stage1.synthetic_labeled, *size, cfg.seed,
-                                 cfg.data.raw_bits)
+                                 cfg.data.raw_bits, cfg.data.scenes)
         parts.append((extra, np.arange(len(extra))))
         described["synthetic"] = len(extra)
     elif choice != "dataset":

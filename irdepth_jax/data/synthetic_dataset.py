@@ -13,7 +13,7 @@ import numpy as np
 from tqdm import tqdm
 
 from irdepth_jax.data.folder import MAP_FOLDERS, SPLITS, DatasetError, write_manifest, write_sample
-from irdepth_jax.data.synthetic import CONDITIONS, render_scene
+from irdepth_jax.data.synthetic import CONDITIONS, SCENES, render_scene
 
 DEPTH_SPLIT = (1500, 400, 392)
 """The paper's Stage II train / val / test frame counts (2292 frames)."""
@@ -70,7 +70,7 @@ def synthetic_manifest(n: int, labeled: int, seed: int, split: str | None = None
 
 def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: int, seed: int = 0,
                             progress: bool = True, overwrite: bool = False,
-                            split: str | None = None) -> pathlib.Path:
+                            split: str | None = None, scenes: str = "street") -> pathlib.Path:
     """Renders n synthetic frames into a folder dataset (what `irdepth synth` runs).
 
     Args:
@@ -82,10 +82,14 @@ def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: i
       seed: dataset seed; frame i is `render_scene(seed_i, condition_i, ...)` with seed_i
         derived from (seed, i).
       progress: show a tqdm progress bar.
+      scenes: the renderer's scene distribution ('street' or 'varied', `render_scene`); recorded
+        in the manifest.
 
     Returns:
       the dataset directory.
     """
+    if scenes not in SCENES:
+        raise ValueError(f"scenes must be one of {SCENES}, got {scenes!r}")
     out = pathlib.Path(out_dir)
     if out.exists() and not out.is_dir():
         raise DatasetError(f"{out}: exists and is not a directory")
@@ -99,9 +103,9 @@ def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: i
     records = synthetic_manifest(n, labeled, seed, split)
     for r in tqdm(records, desc=f"synth {out.name}", disable=not progress, unit="frame"):
         frame_seed = int(np.random.SeedSequence([seed, int(r["id"])]).generate_state(1)[0])
-        s = render_scene(frame_seed, r["condition"], height, width)
+        s = render_scene(frame_seed, r["condition"], height, width, scenes)
         sample = dict(raw14=s["raw14"], ir8=s["ir8"], rgb=s["rgb"], depth=s["depth_lidar"],
                       valid=s["valid"], seg=s["seg"], labeled=r["labeled"], depth_dense=s["depth"])
         r.update(write_sample(out, r["id"], sample))
-    write_manifest(out, records, height, width, source="synthetic", seed=int(seed))
+    write_manifest(out, records, height, width, source="synthetic", seed=int(seed), scenes=scenes)
     return out

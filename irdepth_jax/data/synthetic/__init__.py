@@ -9,6 +9,9 @@ vector and a column vector, so each intersection is a few broadcast numpy operat
 
 Camera: pinhole at height ~1.5 m looking along +z, no pitch, focal length 0.9 * width, horizon at
 row 0.45 * height. Depth is the z-depth (distance along the optical axis, KITTI/MS2 convention).
+`scenes='varied'` draws the camera's height, field of view, horizon row and roll per frame and
+adds crossings, open ground and close obstacles, so that no fixed depth layout fits most frames
+(the default 'street' distribution is what every committed dataset was rendered from).
 
 The LWIR frame is built in radiometric units: each pixel gets a temperature and an emissivity
 from its material and the condition, plus the reflected sky, mixed in 8-14 um band radiance,
@@ -31,6 +34,7 @@ Modules, in the order data flows (each imports only those before it):
 """
 
 from irdepth_jax.data.synthetic.materials import CONDITIONS
-from irdepth_jax.data.synthetic.render import LIDAR_MAX_RANGE, render_scene
+from irdepth_jax.data.synthetic.render import LIDAR_MAX_RANGE, VARIED_CAMERA, render_scene
+from irdepth_jax.data.synthetic.scene import SCENES
 
-__all__ = ["CONDITIONS", "LIDAR_MAX_RANGE", "render_scene"]
+__all__ = ["CONDITIONS", "LIDAR_MAX_RANGE", "SCENES", "VARIED_CAMERA", "render_scene"]

@@ -1,10 +1,11 @@
 """Camera, ray casting and per-pixel geometry.
 
-Camera: pinhole at height cam_h (~1.5 m) looking along +z, no pitch, focal length 0.9 * width,
-horizon at row 0.45 * height. Every primitive is an axis-aligned box, an ellipsoid or a wheel
-ring, intersected with all the rays of its projected bounding box at once (ray directions
-separate into a row vector and a column vector, so each intersection is a few broadcast numpy
-operations), into a z-buffer. Depth is the z-depth (distance along the optical axis).
+Camera: pinhole at height cam_h looking along +z, no pitch; by default focal length 0.9 * width
+and the horizon at row 0.45 * height (the `varied` scenes draw both, see `render`). Every
+primitive is an axis-aligned box, an ellipsoid or a wheel ring, intersected with all the rays of
+its projected bounding box at once (ray directions separate into a row vector and a column
+vector, so each intersection is a few broadcast numpy operations), into a z-buffer. Depth is the
+z-depth (distance along the optical axis).
 """
 
 from __future__ import annotations
@@ -50,19 +51,21 @@ class Geometry:
     elev: np.ndarray
 
 
-def cast_scene(scene: Scene, kinds: np.ndarray, height: int, width: int,
-               cam_h: float) -> Geometry:
+def cast_scene(scene: Scene, kinds: np.ndarray, height: int, width: int, cam_h: float,
+               camera: tuple[float, float, float] | None = None) -> Geometry:
     """Ray casts `scene` from a camera at height cam_h into an (H, W) = (height, width) image.
 
     Args:
       scene: the primitives.
       kinds: (N,) int kind of each of the scene's N objects (`Scene.table()['kind']`).
       height, width: image size; cam_h: camera height (m).
+      camera: (f, cx, cy) focal length and principal point in pixels; None: the default
+        camera (0.9 * width, width / 2, 0.45 * height).
 
     Returns:
       the per-pixel Geometry (arrays (H, W), rays (1, W) and (H, 1)).
     """
-    cast = _Caster(height, width, cam_h)
+    cast = _Caster(height, width, cam_h, camera or (0.9 * width, width / 2.0, 0.45 * height))
     for b in sorted(scene.boxes, key=lambda b: b[4]):  # near to far: hidden boxes are skipped
         cast.box(*b)
     for e in scene.ellipsoids:
@@ -93,10 +96,9 @@ class _Caster:
     int32: its object id (GROUND or SKY to start with); nrm (H, W) int8: its normal code.
     """
 
-    def __init__(self, height, width, cam_h):
+    def __init__(self, height, width, cam_h, camera):
         self.h, self.w, self.oy = height, width, cam_h
-        self.f = 0.9 * width
-        self.cx, self.cy = width / 2.0, 0.45 * height
+        self.f, self.cx, self.cy = (float(v) for v in camera)
         dx = (np.arange(width, dtype=np.float32) + 0.5 - self.cx) / self.f
         dy = -(np.arange(height, dtype=np.float32) + 0.5 - self.cy) / self.f
         self.dx = np.where(np.abs(dx) < 1e-6, 1e-6, dx)[None, :]

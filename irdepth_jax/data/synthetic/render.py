@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from irdepth_jax.config import IGNORE_LABEL
@@ -11,18 +12,24 @@ from irdepth_jax.data.synthetic.radiometry import render_lwir
 from irdepth_jax.data.synthetic.scene import sample_scene
 from irdepth_jax.data.synthetic.surface import shade_surfaces
 from irdepth_jax.data.synthetic.visible import render_rgb
+from irdepth_jax.imaging.tonemap import camera_like
 
 LIDAR_MAX_RANGE = 80.0
 """Range limit (metres, Euclidean) of the simulated LiDAR."""
 
 
-def render_scene(seed: int, condition: str = "day", height: int = 256, width: int = 320) -> dict:
+def render_scene(seed: int, condition: str = "day", height: int = 256, width: int = 320,
+                 scenes: str = "street") -> dict:
     """Renders one random street scene.
 
     Args:
-      seed: any int; the same (seed, condition, height, width) gives identical arrays.
+      seed: any int; the same (seed, condition, height, width, scenes) gives identical arrays.
       condition: 'day', 'dusk' or 'night'.
       height, width: image size in pixels (>= 8 each).
+      scenes: the scene distribution (`scene.SCENES`): 'street' (a level camera at 1.4-1.6 m,
+        focal length 0.9 * width, horizon at 0.45 * height, one straight street) or 'varied'
+        (`VARIED_CAMERA`: camera height, field of view, horizon row and roll drawn per frame;
+        crossings, open ground and close obstacles, see `scene.sample_scene`).
 
     Returns:
       dict with
@@ -42,19 +49,84 @@ def render_scene(seed: int, condition: str = "day", height: int = 256, width: in
     if height < 8 or width < 8:
         raise ValueError(f"height and width must be >= 8, got {height}x{width}")
     rng = np.random.default_rng(seed)
-    scene, lay = sample_scene(rng)
-    cam_h = rng.uniform(1.4, 1.6)
+    scene, lay = sample_scene(rng, scenes)
+    if scenes == "street":
+        cam_h, canvas, camera = rng.uniform(1.4, 1.6), (height, width), None
+    else:
+        cam_h, roll, canvas, camera, horizon = _varied_camera(rng, height, width)
     tab = scene.table()
-    geo = cast_scene(scene, tab["kind"], height, width, cam_h)
+    geo = cast_scene(scene, tab["kind"], *canvas, cam_h, camera)
     t_air, sun_dir = _sample_lighting(rng, condition)
     surf = shade_surfaces(geo, scene, lay, tab, sun_dir)
     raw14, ir8 = render_lwir(rng, condition, t_air, geo, surf, tab["toff"])
     rgb = render_rgb(rng, condition, geo, surf, tab["color"], lay["lamps"], sun_dir)
     seg = np.where(surf.ground, np.where(surf.road, SEG_ID["road"], IGNORE_LABEL),
                    KIND_SEG[geo.kind]).astype(np.uint8)
-    depth_lidar = _lidar(rng, geo)
-    return dict(raw14=raw14, ir8=ir8, rgb=rgb, depth=geo.depth, depth_lidar=depth_lidar,
+    depth, depth_lidar = geo.depth, _lidar(rng, geo)
+    if scenes != "street":
+        raw14, rgb, depth, depth_lidar, seg = _roll(roll, camera, horizon, (height, width),
+                                                    raw14, rgb, depth, depth_lidar, seg)
+        ir8 = camera_like(raw14)
+    return dict(raw14=raw14, ir8=ir8, rgb=rgb, depth=depth, depth_lidar=depth_lidar,
                 valid=depth_lidar > 0, seg=seg, condition=condition)
+
+
+VARIED_CAMERA = dict(height_m=(0.8, 3.0), hfov_deg=(45.0, 95.0), horizon=(0.25, 0.65),
+                     roll_deg=(-10.0, 10.0))
+"""The `varied` scenes' camera, drawn uniformly per frame: height above the ground (a low
+robot to a truck or a mast), horizontal field of view, the horizon's row as a fraction of the
+image height (the principal point: the tilt of a level camera's sensor, so depth stays the
+z-depth along the level optical axis) and the roll about the optical axis."""
+
+
+def _varied_camera(rng, height, width):
+    """(cam_h, roll radians, canvas (H', W'), (f, cx, cy) on the canvas, output horizon row) of
+    a `varied` frame.
+
+    A rolled frame is rendered level on a canvas large enough to hold the output frame rotated
+    about the principal point, then rotated (`_roll`); the principal point sits at
+    (width / 2, horizon row) of the output frame."""
+    c = VARIED_CAMERA
+    cam_h = rng.uniform(*c["height_m"])
+    f = 0.5 * width / np.tan(np.deg2rad(rng.uniform(*c["hfov_deg"])) / 2)
+    cy = rng.uniform(*c["horizon"]) * height
+    roll = np.deg2rad(rng.uniform(*c["roll_deg"]))
+    lo_out, hi_out = np.array([-width / 2, -cy]), np.array([width / 2, height - cy])
+    corners = np.array([[u, v] for u in (lo_out[0], hi_out[0]) for v in (lo_out[1], hi_out[1])])
+    on_canvas = corners @ _rotation(roll).T
+    # whole-pixel margins around the output frame, so that without roll the canvas is the frame
+    # shifted by whole pixels (an exact crop)
+    before = np.ceil(np.maximum(lo_out - on_canvas.min(0), 0)) + 1
+    after = np.ceil(np.maximum(on_canvas.max(0) - hi_out, 0)) + 1
+    canvas = (int(height + before[1] + after[1]), int(width + before[0] + after[0]))
+    camera = (float(f), float(width / 2 + before[0]), float(cy + before[1]))
+    return cam_h, float(roll), canvas, camera, float(cy)
+
+
+def _rotation(roll):
+    """(2, 2) rotation taking output-frame offsets from the principal point to canvas offsets."""
+    c, s = np.cos(roll), np.sin(roll)
+    return np.array([[c, s], [-s, c]])
+
+
+def _roll(roll, camera, horizon, size, raw14, rgb, depth, depth_lidar, seg):
+    """The canvas maps rotated by `roll` about the principal point into the (H, W) = size frame:
+    counts and colours interpolated bilinearly, depth and labels by nearest neighbour (no
+    mixed depths or classes at edges). z-depth is unchanged by a roll about the optical axis.
+    The canvas's camera noise (fixed pattern, vignetting) rolls with it."""
+    height, width = size
+    rot = _rotation(roll)
+    # OpenCV's pixel coordinates put pixel centres on integers; ours at + 0.5
+    src_centre = np.array(camera[1:]) - 0.5
+    dst_centre = np.array([width / 2.0, horizon]) - 0.5
+    m = np.hstack([rot, (src_centre - rot @ dst_centre)[:, None]])
+
+    def warp(a, interp):
+        return cv2.warpAffine(a, m, (width, height), flags=interp | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REPLICATE)
+
+    return (warp(raw14, cv2.INTER_LINEAR), warp(rgb, cv2.INTER_LINEAR), warp(depth, cv2.INTER_NEAREST),
+            warp(depth_lidar, cv2.INTER_NEAREST), warp(seg, cv2.INTER_NEAREST))
 
 
 def _sample_lighting(rng, condition):

@@ -4,6 +4,12 @@
 camera sits above x = 0, z = 0): a road with lanes and parking strips, sidewalks, buildings on
 both sides, a far backdrop closing the view, moving and parked cars, trees, lamp poles and
 bicycles with or without riders. It only draws from `rng`; nothing is rendered here.
+
+`SCENES` names the scene distributions: 'street' (the one above, the distribution every
+committed dataset and result was rendered from; its draws never change) and 'varied', where the
+street may be crossed by another one, may run through open ground with few and set-back
+buildings, and may have an obstacle close in front of the camera (a wall, a van, a pole), so
+that no fixed depth layout fits most frames.
 """
 
 from __future__ import annotations
@@ -68,23 +74,37 @@ class Scene:
                     params=np.array(self.params, np.float32))
 
 
-def sample_scene(rng: np.random.Generator) -> tuple[Scene, dict]:
+SCENES = ("street", "varied")
+"""The scene distributions of `sample_scene` (module docstring)."""
+
+
+def sample_scene(rng: np.random.Generator, scenes: str = "street") -> tuple[Scene, dict]:
     """Random street -> (Scene, layout).
 
     The layout dict holds the street's cross-section in x (lane width `lane`, `centre` line,
     lane edges `lanes_l` / `lanes_r`, `n_lanes`, road edges `road_l` / `road_r`, parking strip
     widths `park_l` / `park_r`, sidewalk widths `walk_l` / `walk_r`, outer sidewalk edges
-    `side_l` / `side_r`), the backdrop distance `z_far` and the street lamps' bulbs `lamps`
-    (list of (x, y, z)).
+    `side_l` / `side_r`), the backdrop distance `z_far`, the street lamps' bulbs `lamps`
+    (list of (x, y, z)), how many building lots are built (`built`) and how far they are set
+    back (`setback`), and for a crossing (`varied` only) `cross`: the cross road's (z0, z1) and
+    `gap`: the (z0, z1) its road and sidewalks clear of the street's buildings, trees and lamps.
     """
+    if scenes not in SCENES:
+        raise ValueError(f"scenes must be one of {SCENES}, got {scenes!r}")
     s = Scene()
     lay = _sample_layout(rng)
+    if scenes == "varied":
+        _vary_layout(rng, lay)
     _buildings(s, rng, lay)
+    if "cross" in lay:
+        _cross_street(s, rng, lay)
     _backdrop(s, rng, lay["z_far"])
     _cars(s, rng, lay)
     for side in (-1, 1):
         _lamps(s, rng, lay, _trees(s, rng, lay, side), side)
     _bicycles(s, rng, lay)
+    if scenes == "varied" and rng.random() < 0.35:
+        _close_obstacle(s, rng, lay)
     # plain Python floats: the caster does scalar arithmetic on them (numpy scalars are slow)
     s.boxes, s.ellipsoids, s.rings = ([tuple(map(float, p[:-1])) + (int(p[-1]),) for p in prims]
                                       for prims in (s.boxes, s.ellipsoids, s.rings))
@@ -104,7 +124,28 @@ def _sample_layout(rng):
     return dict(lane=lane, centre=centre, road_l=road_l, road_r=road_r, lanes_l=lanes_l,
                 lanes_r=lanes_r, n_lanes=n_left + n_right, park_l=park_l, park_r=park_r,
                 walk_l=walk_l, walk_r=walk_r, side_l=road_l - walk_l, side_r=road_r + walk_r,
-                z_far=rng.uniform(110.0, 200.0), lamps=[])
+                z_far=rng.uniform(110.0, 200.0), lamps=[], built=0.85, setback=(0.0, 4.0))
+
+
+def _vary_layout(rng, lay):
+    """The `varied` distribution's layouts: a crossing (35 %), open ground (25 %) or the plain
+    street; the backdrop anywhere from 50 to 200 m."""
+    lay["z_far"] = rng.uniform(50.0, 200.0)
+    kind = rng.random()
+    if kind < 0.35:
+        width = rng.uniform(7.0, 16.0)
+        z0 = rng.uniform(8.0, min(45.0, lay["z_far"] - 30.0))
+        walk = rng.uniform(2.0, 4.0)
+        lay["cross"] = (z0, z0 + width)
+        lay["gap"] = (z0 - walk, z0 + width + walk)
+    elif kind < 0.6:  # open ground: few buildings, far from the road
+        lay["built"], lay["setback"] = 0.25, (8.0, 40.0)
+
+
+def _clear(lay, z0, z1):
+    """Whether [z0, z1] stays out of the crossing's gap (always, without a crossing)."""
+    gap = lay.get("gap")
+    return gap is None or z1 < gap[0] or z0 > gap[1]
 
 
 def _window_params(rng):
@@ -119,8 +160,8 @@ def _buildings(s, rng, lay):
         z = rng.uniform(-15.0, 0.0)
         while z < lay["z_far"] - 10:
             length = rng.uniform(8.0, 30.0)
-            if rng.random() < 0.85:
-                setback = rng.uniform(0.0, 4.0) if rng.random() < 0.5 else 0.0
+            if rng.random() < lay["built"] and _clear(lay, z, z + length):
+                setback = rng.uniform(*lay["setback"]) if rng.random() < 0.5 else 0.0
                 depth = rng.uniform(8.0, 20.0)
                 x_in = edge + side * setback
                 x0, x1 = sorted((x_in, x_in + side * depth))
@@ -130,6 +171,43 @@ def _buildings(s, rng, lay):
                       toff=rng.normal(0, 1.0), color=tuple(np.clip(tint, 0, 1)),
                       params=_window_params(rng))
             z += length + (rng.uniform(0.0, 8.0) if rng.random() < 0.5 else 0.0)
+
+
+def _cross_street(s, rng, lay):
+    """Buildings lining the cross street on both sides of the street, out to 40-120 m."""
+    g0, g1 = lay["gap"]
+    for side in (-1, 1):
+        edge = lay["side_l"] if side < 0 else lay["side_r"]
+        for near in (True, False):
+            x, end = edge, edge + side * rng.uniform(40.0, 120.0)
+            while side * (end - x) > 0:
+                length, depth = rng.uniform(8.0, 30.0), rng.uniform(8.0, 20.0)
+                if rng.random() < lay["built"]:
+                    x0, x1 = sorted((x, x + side * length))
+                    z0, z1 = (g0 - depth, g0) if near else (g1, g1 + depth)
+                    shade = rng.uniform(0.25, 0.8)
+                    s.box(BUILDING, x0, x1, 0.0, rng.uniform(4.0, 28.0), z0, z1,
+                          toff=rng.normal(0, 1.0),
+                          color=tuple(np.clip(rng.uniform(0.85, 1.15, 3) * shade, 0, 1)),
+                          params=_window_params(rng))
+                x += side * (length + rng.uniform(0.0, 6.0))
+
+
+def _close_obstacle(s, rng, lay):
+    """One thing within 2-9 m in front of the camera: a wall or fence across part of the view,
+    a van or car ahead, or a pole."""
+    z = rng.uniform(2.0, 9.0)
+    kind = rng.random()
+    if kind < 0.4:
+        x = rng.uniform(-4.0, 4.0)
+        half = rng.uniform(1.0, 5.0)
+        s.box(BUILDING, x - half, x + half, 0.0, rng.uniform(1.0, 3.5), z, z + rng.uniform(0.2, 1.0),
+              toff=rng.normal(0, 1.0), color=tuple(rng.uniform(0.3, 0.8, 3)), params=_window_params(rng))
+    elif kind < 0.8:
+        _car(s, rng, rng.uniform(-1.5, 1.5), z + 2.5, rng.choice((-1, 1)), rng.random() < 0.5, min_z=0.0)
+    else:
+        x = rng.uniform(-2.5, 2.5)
+        s.box(POLE, x - 0.15, x + 0.15, 0.0, rng.uniform(3.0, 8.0), z, z + 0.3, color=(0.4, 0.4, 0.42))
 
 
 def _backdrop(s, rng, z_far):
@@ -161,7 +239,9 @@ def _cars(s, rng, lay):
         curb = lay["road_l"] if side < 0 else lay["road_r"]
         z = rng.uniform(-2.0, 8.0)
         while strip > 0 and z < 90 and rng.random() < 0.85:
-            _car(s, rng, curb - side * 1.1, z, rng.choice((-1, 1)), rng.random() < 0.15, min_z=1.0)
+            facing, running = rng.choice((-1, 1)), rng.random() < 0.15
+            if _clear(lay, z - 2.5, z + 2.5):
+                _car(s, rng, curb - side * 1.1, z, facing, running, min_z=1.0)
             z += rng.uniform(5.2, 14.0)
 
 
@@ -207,6 +287,9 @@ def _trees(s, rng, lay, side):
     while z < lay["z_far"] - 10 and rng.random() < 0.9:
         r = rng.uniform(0.12, 0.25)
         trunk_h = rng.uniform(1.8, 3.0)
+        if not _clear(lay, z - 3.0, z + 3.0):
+            z += tree_gap
+            continue
         s.box(TRUNK, x - r, x + r, 0.0, trunk_h + 0.5, z - r, z + r, toff=rng.normal(0, 0.5),
               color=(0.25, 0.18, 0.12))
         rx, ry = rng.uniform(1.3, 2.8), rng.uniform(1.6, 3.5)
@@ -223,6 +306,9 @@ def _lamps(s, rng, lay, x, side):
     xp = x + side * 0.5
     while zp < 100:
         top = rng.uniform(6.0, 8.0)
+        if not _clear(lay, zp - 1.0, zp + 1.0):
+            zp += 10.0
+            continue
         s.box(POLE, xp - 0.08, xp + 0.08, 0.0, top, zp - 0.08, zp + 0.08, color=(0.4, 0.4, 0.42))
         arm0, arm1 = sorted((xp, xp - side * 1.6))
         s.box(LAMP, arm0, arm1, top - 0.25, top, zp - 0.2, zp + 0.2, color=(0.8, 0.8, 0.7))

@@ -147,12 +147,18 @@ def _ground_materials(geo, lay):
     ground = geo.kind == GROUND
     road = ground & (x_w >= lay["road_l"]) & (x_w <= lay["road_r"])
     walk = ground & ~road & (x_w >= lay["side_l"]) & (x_w <= lay["side_r"])
+    if "cross" in lay:  # the cross road and its sidewalks, across the whole view
+        cross = ground & ~road & (z_w >= lay["cross"][0]) & (z_w <= lay["cross"][1])
+        walk = (walk & ~cross) | (ground & ~road & ~cross & (z_w >= lay["gap"][0]) & (z_w <= lay["gap"][1]))
+        road = road | cross
     lane_x = (x_w - lay["lanes_l"]) / lay["lane"]
     near_line = np.abs(lane_x - np.round(lane_x)) * lay["lane"] < 0.08
     edge_line = (np.round(lane_x) <= 0) | (np.round(lane_x) >= lay["n_lanes"])
     dashed = np.mod(z_w, 9.0) < 3.0
     centre_line = np.abs(x_w - lay["centre"]) < 0.12
     marking = road & ((near_line & (edge_line | dashed)) | centre_line)
+    if "cross" in lay:  # no lane paint across the crossing
+        marking &= (z_w < lay["cross"][0]) | (z_w > lay["cross"][1])
     mat = np.where(ground, np.where(road, ROAD, np.where(walk, WALK, GRASS)), geo.kind)
     return ground, road, marking, mat
 
