@@ -132,18 +132,21 @@ def _add_train(sub) -> None:
     from irdepth_jax.config import available_presets
 
     p = sub.add_parser(
-        "train", help="train Stage I (I-1 then I-2) or Stage II",
+        "train", help="train Stage I (I-1 then I-2), Stage II, or pretrain the depth network",
         description="Train one stage into --workdir (config.json, metrics.jsonl, tb/, "
                     "checkpoints/). stage1 runs I-1 (reconstruction pre-training on the depth "
                     "train split; stage1.i1_frames=all for every frame, as the paper, at the "
                     "cost of test frames in I-1) then I-2 (soft multi-task on the labelled "
                     "frames of seg_split train; data without labels needs "
                     "stage1.seg_labels=synthetic|PATH|none); stage2 fine-tunes Depth Anything "
-                    "V2 on the frozen Stage I model's HSV images (--stage1-checkpoint). Each "
+                    "V2 on the frozen Stage I model's HSV images (--stage1-checkpoint); depth "
+                    "trains (or fine-tunes, from depth.checkpoint) Depth Anything V2 on the "
+                    "dataset's visible images (rgb/) with SiLog, a depth network that Stage II "
+                    "starts from with depth.checkpoint=WORKDIR. Each "
                     "stage prints what it is built from (irdepth: STAGE: ... lines, also "
                     "logged in metrics.jsonl).",
         epilog=EPILOG_OVERRIDES)
-    p.add_argument("stage", choices=("stage1", "stage2"), help="which stage")
+    p.add_argument("stage", choices=("stage1", "stage2", "depth"), help="which stage")
     p.add_argument("--preset", default="tiny", choices=available_presets(),
                    help="config preset, irdepth_jax/configs/NAME.py (default tiny)")
     p.add_argument("--config", help="config file: .py defining get_config() / config, or .json "

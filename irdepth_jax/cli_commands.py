@@ -167,7 +167,7 @@ def cmd_train(args) -> int:
 
     from irdepth_jax.data.source import DataSource
     from irdepth_jax.errors import Interrupted
-    from irdepth_jax.train.stages import train_stage1, train_stage2
+    from irdepth_jax.train.stages import train_depth, train_stage1, train_stage2
     from irdepth_jax.train.workdir_lock import claim_workdir, holds_run, last_checkpoint
 
     cfg = load_config(args.preset, args.config, _overrides(args.overrides))
@@ -190,7 +190,7 @@ def cmd_train(args) -> int:
                 if args.stage == "stage1":
                     result = train_stage1(cfg, source, opts)
                 else:
-                    train_stage2(cfg, source, opts)
+                    (train_depth if args.stage == "depth" else train_stage2)(cfg, source, opts)
         except KeyboardInterrupt:  # the run's frames (loader threads) end with this block
             ctrl_c["aborting"] = interrupted = True
     if interrupted:
@@ -202,8 +202,10 @@ def cmd_train(args) -> int:
         print(f"stage1 done ({', '.join(f'{k}: {v} steps' for k, v in result['steps'].items())}"
               f", {time.perf_counter() - start:.0f} s); checkpoints in {args.workdir}/checkpoints")
     else:
-        print(f"stage2 done ({time.perf_counter() - start:.0f} s); checkpoints in "
+        print(f"{args.stage} done ({time.perf_counter() - start:.0f} s); checkpoints in "
               f"{args.workdir}/checkpoints/stage2")
+    if args.stage == "depth":
+        print(f"start Stage II from this depth network with depth.checkpoint={args.workdir}")
     return 0
 
 

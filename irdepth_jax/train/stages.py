@@ -1,10 +1,13 @@
 """The stages of the paper's training: Stage I (I-1 reconstruction pre-training, then I-2 soft
 multi-task weighting) and Stage II (Depth Anything V2 on the frozen Stage I model's HSV images,
-SiLog + sky loss), each a sequence of `phase.run_phase` calls into one workdir.
+SiLog + sky loss), each a sequence of `phase.run_phase` calls into one workdir; and depth
+pretraining (`train_depth`: Depth Anything V2 on visible images with depth, the starting point a
+Stage II takes with ``depth.checkpoint=RUN_DIR``).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 from collections.abc import Callable
@@ -135,6 +138,26 @@ def _check_i2_continues_i1(workdir: str, i1_total: int) -> None:
             f"with the earlier length")
 
 
+def train_depth(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
+    """Depth pretraining: Depth Anything V2 trained (or fine-tuned, from `depth.checkpoint`) on
+    the dataset's aligned visible images (rgb/) with SiLog, the official parameter groups
+    (backbone at `stage2.learning_rate`, head at `head_lr_multiplier` x it) and Stage II's
+    schedule, into `opts.workdir`. It is Stage II with ``stage2.preprocessing=rgb``, no sky loss
+    and no Stage I model, so it resumes, runs multi-device and is evaluated like Stage II; a
+    Stage II starts from it with ``depth.checkpoint=RUN_DIR`` as from a released checkpoint.
+
+    Returns {'unet': None, 'depth': final Depth Anything V2 params}.
+    """
+    if opts.stage1_checkpoint is not None:
+        raise RunError("--stage1-checkpoint: train depth trains on visible images, without a "
+                       "Stage I model")
+    if cfg.stage2.preprocessing not in ("hsv", "rgb"):  # hsv: the presets' default, not a choice
+        raise RunError(f"stage2.preprocessing={cfg.stage2.preprocessing}: train depth trains on "
+                       "the visible images (rgb); the thermal inputs are train stage2's")
+    stage2 = dataclasses.replace(cfg.stage2, preprocessing="rgb", sky_loss=False)
+    return train_stage2(dataclasses.replace(cfg, stage2=stage2), source, opts)
+
+
 def _unet_vars(state: TrainState) -> dict:
     return {"params": state.params, "batch_stats": state.batch_stats}
 
@@ -199,9 +222,11 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     log = RunLog(opts.workdir)
     try:
         log.info("stage2", parallel=dp.describe(), raw_bits=cfg.data.raw_bits)
-        log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
-                 hue_mode=s2.hue_mode, sky_loss=(f"on, reference depth {ref_depth:.2f} m"
-                                                 if s2.sky_loss else "off"))
+        if unet is not None:
+            log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
+                     hue_mode=s2.hue_mode)
+        log.info("stage2", input=s2.preprocessing,
+                 sky_loss=f"on, reference depth {ref_depth:.2f} m" if s2.sky_loss else "off")
         log.info("stage2", **depth_init)
         total = steps_for(s2.epochs, opts.steps if opts.steps is not None else s2.steps,
                           len(train_idx), s2.batch_size)

@@ -78,8 +78,19 @@ def _check_count(key: str, value, low: int, optional: bool) -> None:
 
 
 def _check_depth(source, cfg: Config) -> None:
-    """RunError unless a Stage II training frame has valid depth (stops at the first one)."""
+    """RunError unless a Stage II training frame has valid depth (stops at the first one), and
+    for stage2.preprocessing=rgb unless every training frame has its visible image (a frame
+    without one would train on a black image)."""
     dataset, indices = phase_frames(source, "stage2", cfg)
+    if cfg.stage2.preprocessing == "rgb":
+        records = getattr(dataset, "records", None)
+        missing = ([r["id"] for r in (records[int(i)] for i in indices) if r.get("has_rgb") is False]
+                   if records is not None else
+                   [] if dataset[int(indices[0])]["has_rgb"] else [dataset[int(indices[0])]["id"]])
+        if missing:
+            raise RunError(f"--data {source.path}: {len(missing)} training frame(s) have no visible "
+                           f"image (e.g. {missing[0]}), which stage2.preprocessing=rgb trains on; "
+                           "use a dataset with rgb/ images")
     for i in indices:
         if dataset[int(i)]["valid"].any():
             return

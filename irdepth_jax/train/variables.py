@@ -56,11 +56,13 @@ def random_depth(cfg: Config) -> dict:
 def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
     """Stage II's starting Depth Anything V2 params and a description of where they came from.
 
-    Without `depth.checkpoint`: `random_depth`. With it: the backbone from the file, and its
-    head by `depth.load_head`: 'auto' when the file's head kind (`depth.checkpoint_kind`, see
-    `weights.load_depth_anything`) is the one `depth.metric` trains, else a random head (how the
-    official metric fine-tuning starts from a relative checkpoint); 'true' the file's head,
-    refused when the kinds differ; 'false' a random head.
+    Without `depth.checkpoint`: `random_depth`. With it (a released .pth / .safetensors file, or
+    a run directory of ours whose last stage trained Depth Anything V2: `irdepth train depth`
+    or a Stage II): the backbone from it, and its head by `depth.load_head`: 'auto' when the
+    file's head kind (`depth.checkpoint_kind`, see `weights.load_depth_anything`; a run's
+    `depth.metric`) is the one `depth.metric` trains, else a random head (how the official
+    metric fine-tuning starts from a relative checkpoint); 'true' the file's head, refused when
+    the kinds differ; 'false' a random head.
 
     Returns (params, {'backbone': str, 'head': str}, plus 'max_depth': str when a loaded metric
     head was trained for another range than `depth.max_depth`), for `RunLog.info`. Raises
@@ -68,21 +70,15 @@ def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
     ambiguous file, or load_head=true with the other head kind.
     """
     d = cfg.depth
-    params = random_depth(cfg)
     if not d.checkpoint:
-        return params, {"backbone": "random init (no depth.checkpoint)",
-                        "head": "random init (no depth.checkpoint)"}
+        return random_depth(cfg), {"backbone": "random init (no depth.checkpoint)",
+                                   "head": "random init (no depth.checkpoint)"}
     load_head = str(d.load_head).lower()
     if load_head not in ("auto", "true", "false"):
         raise RunError(f"depth.load_head {d.load_head!r}: choose auto, true or false")
-    from irdepth_jax.weights import load_depth_anything
-    try:
-        file_cfg, loaded = load_depth_anything(d.checkpoint, encoder=d.encoder,
-                                               kind=d.checkpoint_kind, max_depth=d.max_depth)
-    except (OSError, ValueError) as err:
-        raise RunError(f"depth.checkpoint: {one_line(err)}") from None
+    file_cfg, loaded = _depth_of_run(d.checkpoint, cfg) if _is_run(d.checkpoint) else _depth_of_file(d)
     file_kind, kind = ("metric" if m else "relative" for m in (file_cfg.metric, d.metric))
-    params = {**params, "pretrained": loaded["pretrained"]}
+    params = {**random_depth(cfg), "pretrained": loaded["pretrained"]}
     described = {"backbone": f"loaded from {d.checkpoint} (encoder {d.encoder})"}
     if load_head == "false":
         described["head"] = "random init: depth.load_head=false"
@@ -105,6 +101,44 @@ def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
                 f"depth.max_depth={d.max_depth:g} scales its output by "
                 f"{d.max_depth / file_cfg.max_depth:.3g}")
     return params, described
+
+
+def _depth_of_file(d) -> tuple[Any, dict]:
+    """(DepthAnythingConfig, params) of a released checkpoint file (`weights`)."""
+    from irdepth_jax.weights import load_depth_anything
+    try:
+        return load_depth_anything(d.checkpoint, encoder=d.encoder, kind=d.checkpoint_kind,
+                                   max_depth=d.max_depth)
+    except (OSError, ValueError) as err:
+        raise RunError(f"depth.checkpoint: {one_line(err)}") from None
+
+
+def _is_run(path: str) -> bool:
+    """Whether `path` is one of our run directories or checkpoint directories."""
+    try:
+        find_checkpoint(path)
+        return True
+    except CheckpointError:
+        return False
+
+
+def _depth_of_run(path: str, cfg: Config) -> tuple[Any, dict]:
+    """(DepthAnythingConfig, params) of the Depth Anything V2 a run of ours trained, refused
+    (RunError naming the keys) when its architecture is not `cfg`'s."""
+    run_cfg, stage, model = load_model(path)
+    if model["depth"] is None:
+        raise RunError(f"depth.checkpoint {path}: a {stage} run, which has no depth network "
+                       "(irdepth train depth or stage2 trains one)")
+    if run_cfg.depth.encoder != cfg.depth.encoder:
+        raise RunError(f"depth.checkpoint {path}: trained with depth.encoder="
+                       f"{run_cfg.depth.encoder}, this run has depth.encoder={cfg.depth.encoder}")
+    template = jax.eval_shape(lambda: random_depth(cfg))  # shapes only: nothing compiled
+    shapes = [jax.tree_util.tree_structure(template), jax.tree_util.tree_structure(model["depth"])]
+    if shapes[0] != shapes[1] or any(
+            a.shape != b.shape for a, b in zip(jax.tree.leaves(template), jax.tree.leaves(model["depth"]))):
+        raise RunError(f"depth.checkpoint {path}: its Depth Anything V2 parameters do not fit this "
+                       "run's depth settings (depth.* must match the run's config.json)")
+    return depth_model_config(run_cfg), model["depth"]
 
 
 def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
