@@ -100,7 +100,8 @@ class Context:
         self.data_fingerprint = _fingerprint(self.data_path)
         self.eval_key = hashlib.sha1(json.dumps(
             {"data": _fingerprint(self.eval_info["path"]), "split": EVAL_SPLIT,
-             "protocol": dataclasses.asdict(self.protocol)}, sort_keys=True).encode()).hexdigest()[:12]
+             "protocol": dataclasses.asdict(self.protocol), "metrics": EVAL_METRICS_VERSION},
+            sort_keys=True).encode()).hexdigest()[:12]
 
     # ---------------------------------------------------------------- data
     def _dataset(self) -> tuple[str, dict]:
@@ -293,10 +294,12 @@ class Context:
 
     def _eval_stage2(self, cfg, workdir: str) -> tuple[dict, dict]:
         """Depth metrics under the protocol's alignment ('stage2') and median-scaled per image
-        ('stage2_median'), from one prediction per frame."""
+        ('stage2_median'), from one prediction per frame; 'stage2' also holds the sky metrics
+        (`metrics.SKY_METRICS`, on the labelled frames, against the run's sky reference depth)."""
         from irdepth_jax.evaluators import accumulate_depth
-        from irdepth_jax.metrics import DepthMetricAccumulator
+        from irdepth_jax.metrics import DepthMetricAccumulator, SkyMetricAccumulator
         from irdepth_jax.train.parallel import DataParallel
+        from irdepth_jax.train.stages import sky_reference_depth
         from irdepth_jax.train.variables import load_model
 
         _, _, model = load_model(workdir, [])
@@ -304,10 +307,20 @@ class Context:
         accs = {key: DepthMetricAccumulator(align, cfg.data.min_depth, cfg.data.max_depth,
                                             keep_per_image=True)
                 for key, align in (("stage2", self.protocol.align), ("stage2_median", "median"))}
+        sky = SkyMetricAccumulator(sky_reference_depth(cfg, self.source.max_depth()),
+                                   min_depth=cfg.data.min_depth, max_depth=cfg.data.max_depth)
         accumulate_depth(cfg, model["unet"], model["depth"], dataset, indices,
-                         DataParallel("single"), list(accs.values()))
+                         DataParallel("single"), list(accs.values()), [sky])
         frames = {f"{key}/{k}": v for key, acc in accs.items() for k, v in acc.per_image().items()}
-        return {key: acc.result() for key, acc in accs.items()}, frames
+        frames.update({f"stage2/{k}": v for k, v in sky.per_image().items()})
+        metrics = {key: acc.result() for key, acc in accs.items()}
+        for group, values in sky.result().items():
+            metrics["stage2"].setdefault(group, {}).update(values)
+        return metrics, frames
+
+
+EVAL_METRICS_VERSION = 2
+"""Part of the evaluation cache key: 2 added the sky metrics, so older evaluations are redone."""
 
 
 def _fingerprint(path: str) -> str:

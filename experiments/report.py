@@ -20,8 +20,9 @@ if TYPE_CHECKING:
 
 COLUMN_NAMES = {"d1": "δ<1.25", "d2": "δ<1.25²", "d3": "δ<1.25³", "abs_rel": "AbsRel",
                 "sq_rel": "SqRel", "rmse": "RMSE", "silog": "SiLog", "ssim": "SSIM",
-                "psnr": "PSNR", "entropy": "Entropy", "miou": "mIoU"}
-HIGHER_IS_BETTER = {"d1", "d2", "d3", "ssim", "psnr", "entropy", "miou"}
+                "psnr": "PSNR", "entropy": "Entropy", "miou": "mIoU",
+                "sky_far": "sky far (share)", "skyline_abs_rel": "AbsRel ≤ 3 px from sky"}
+HIGHER_IS_BETTER = {"d1", "d2", "d3", "ssim", "psnr", "entropy", "miou", "sky_far"}
 
 
 def hardware() -> dict:

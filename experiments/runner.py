@@ -43,6 +43,9 @@ QUICK_EVAL_FRAMES = 24
 test, not a result)."""
 
 DEPTH_COLUMNS = ("d1", "d2", "d3", "abs_rel", "sq_rel", "rmse")
+SKY_COLUMNS = ("sky_far", "skyline_abs_rel")
+"""`metrics.SKY_METRICS`: the share of true-sky pixels predicted at >= 0.9 x the sky reference
+depth, and AbsRel within 3 px of the skyline (the depth metrics exclude the sky itself)."""
 RECON_COLUMNS = ("ssim", "psnr", "entropy")
 SEG_COLUMNS = ("miou",)
 

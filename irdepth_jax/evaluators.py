@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.config import Config
+from irdepth_jax.config import CLASS_NAMES, Config
 from irdepth_jax.data.source import device_batch
 from irdepth_jax.metrics import DepthMetricAccumulator, confusion_matrix, entropy, mean_iou, psnr, ssim
 from irdepth_jax.models.pipeline import run_pipeline, unet_outputs
@@ -142,12 +142,14 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
 
 
 def accumulate_depth(cfg: Config, unet_vars: dict | None, da_params: Any, dataset, indices,
-                     dp: DataParallel, accumulators) -> None:
+                     dp: DataParallel, accumulators, sky_accumulators=()) -> None:
     """Feeds the Stage II model's depth of every frame of `indices` to each
-    `metrics.DepthMetricAccumulator` of `accumulators` (one prediction, several alignments).
+    `metrics.DepthMetricAccumulator` of `accumulators` (one prediction, several alignments) and
+    each `metrics.SkyMetricAccumulator` of `sky_accumulators`.
 
-    Ground truth: the dataset's `depth` (H, W) where `valid`; each accumulator applies its own
-    range, alignment and clamp."""
+    Ground truth: the dataset's `depth` (H, W) where `valid`, and for the sky metrics its
+    labels' sky class where the frame is labelled; each accumulator applies its own range,
+    alignment and clamp."""
     frozen = None if unet_vars is None else {"unet": unet_vars}
     run = _Predictor(dp, "stage2", cfg, {"frozen": frozen, "depth": da_params})
     for batch, n in _eval_batches(dataset, indices, dp):
@@ -157,6 +159,9 @@ def accumulate_depth(cfg: Config, unet_vars: dict | None, da_params: Any, datase
         conditions = [str(c) for c in batch["condition"][:n]]
         for acc in accumulators:
             acc.update(depth, batch["depth"][:n], batch["valid"][:n], conditions=conditions)
+        for acc in sky_accumulators:
+            acc.update(depth, batch["depth"][:n], batch["valid"][:n],
+                       batch["seg"][:n] == CLASS_NAMES.index("sky"), batch["labeled"][:n], conditions)
 
 
 def evaluate_stage2(cfg: Config, unet_vars: dict | None, da_params: Any, dataset, indices,

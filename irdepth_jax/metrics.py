@@ -38,12 +38,15 @@ from irdepth_jax.losses import silog_loss
 __all__ = [
     "DEPTH_METRICS",
     "DepthMetricAccumulator",
+    "SKY_METRICS",
+    "SkyMetricAccumulator",
     "confusion_matrix",
     "depth_metrics",
     "entropy",
     "mean_iou",
     "per_class_iou",
     "per_image_depth_metrics",
+    "per_image_sky_metrics",
     "psnr",
     "ssim",
 ]
@@ -267,6 +270,85 @@ class DepthMetricAccumulator:
             out[group] = {k: float(v) for k, v in zip(DEPTH_METRICS, means)}
             pixels, images = self._nonfinite.get(group, (0, 0))
             out[group].update(count=n, nonfinite_pixels=int(pixels), nonfinite_images=int(images))
+        return out
+
+
+SKY_METRICS: tuple[str, ...] = ("sky_far", "skyline_abs_rel")
+"""What the usual depth metrics cannot see (they exclude sky pixels, which have no depth): the
+sky loss's target and the boundary it sharpens (`per_image_sky_metrics`)."""
+
+
+@functools.partial(jax.jit, static_argnames=("radius",))
+def per_image_sky_metrics(pred, gt, mask, sky, ref_depth, radius: int = 3, factor: float = 0.9,
+                          min_depth: float = 1e-3, max_depth: float = 80.0) -> dict[str, jnp.ndarray]:
+    """Sky metrics of each image.
+
+    Args:
+      pred: (B, H, W) predicted depth (metres); gt, mask: (B, H, W) depth and its valid pixels;
+      sky: (B, H, W) bool, the true sky pixels (labels); ref_depth: the sky reference depth
+        (metres) the sky loss pushes sky pixels to.
+      radius: the skyline band's half-width in pixels (Chebyshev distance to a sky pixel).
+      factor: a sky pixel counts as far when pred >= factor * ref_depth.
+      min_depth, max_depth: valid gt range and prediction clamp of the band's AbsRel.
+    Returns:
+      {'sky_far': (B,) share of the sky pixels predicted at >= factor * ref_depth (NaN without
+      sky), 'skyline_abs_rel': (B,) AbsRel of the valid non-sky pixels within `radius` px of
+      the sky (NaN where there is none)}.
+    """
+    pred, gt = jnp.asarray(pred, jnp.float32), jnp.asarray(gt, jnp.float32)
+    sky = jnp.asarray(sky, bool)
+    n_sky = sky.sum(axis=(1, 2))
+    far = (jnp.where(sky, jnp.nan_to_num(pred, nan=0.0), 0.0) >= factor * ref_depth) & sky
+    size = 2 * radius + 1
+    near_sky = jax.lax.reduce_window(sky, False, jax.lax.bitwise_or, (1, size, size), (1, 1, 1),
+                                     "SAME")
+    band = near_sky & ~sky & jnp.asarray(mask, bool) & (gt >= min_depth) & (gt <= max_depth)
+    n_band = band.sum(axis=(1, 2))
+    p = jnp.clip(pred, min_depth, max_depth)
+    rel = jnp.where(band, jnp.abs(p - gt) / jnp.where(band, gt, 1.0), 0.0).sum(axis=(1, 2))
+    return {"sky_far": jnp.where(n_sky > 0, far.sum(axis=(1, 2)) / jnp.maximum(n_sky, 1), jnp.nan),
+            "skyline_abs_rel": jnp.where(n_band > 0, rel / jnp.maximum(n_band, 1), jnp.nan)}
+
+
+class SkyMetricAccumulator:
+    """Streams `per_image_sky_metrics` over batches of labelled frames; overall and
+    per-condition means of the images that have each metric (frames without labels count in
+    none).
+
+    Args: ref_depth, radius, factor, min_depth, max_depth: as `per_image_sky_metrics`.
+    """
+
+    def __init__(self, ref_depth: float, radius: int = 3, factor: float = 0.9,
+                 min_depth: float = 1e-3, max_depth: float = 80.0):
+        self.kw = dict(ref_depth=ref_depth, radius=radius, factor=factor, min_depth=min_depth,
+                       max_depth=max_depth)
+        self._rows: list[np.ndarray] = []
+        self._conditions: list[str] = []
+
+    def update(self, pred, gt, mask, sky, labeled, conditions: Sequence[str]) -> None:
+        """Adds a batch: pred, gt, mask, sky (B, H, W); labeled (B,) bool (sky labels exist);
+        conditions: B names."""
+        out = per_image_sky_metrics(pred, gt, mask, sky, **self.kw)
+        values = np.stack([np.asarray(out[k], np.float64) for k in SKY_METRICS], axis=1)
+        self._rows.append(np.where(np.asarray(labeled, bool)[:, None], values, np.nan))
+        self._conditions += [str(c) for c in conditions]
+
+    def per_image(self) -> dict[str, np.ndarray]:
+        """Each `SKY_METRICS` name -> (N,) float64 of every image seen (NaN: not measurable)."""
+        values = np.concatenate(self._rows) if self._rows else np.zeros((0, len(SKY_METRICS)))
+        return {k: values[:, j] for j, k in enumerate(SKY_METRICS)}
+
+    def result(self) -> dict[str, dict[str, float]]:
+        """{'all': {name: mean, name_count: images}, condition: {...}, ...}."""
+        values, conditions = self.per_image(), np.asarray(self._conditions)
+        out = {}
+        for group in ["all"] + sorted(set(self._conditions)):
+            pick = slice(None) if group == "all" else conditions == group
+            out[group] = {}
+            for k, v in values.items():
+                v = v[pick][np.isfinite(v[pick])]
+                out[group][k] = float(v.mean()) if len(v) else float("nan")
+                out[group][f"{k}_count"] = int(len(v))
         return out
 
 

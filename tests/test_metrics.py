@@ -244,3 +244,61 @@ def test_nonfinite_predictions_are_nan_and_counted_under_jit():
     assert res["all"]["count"] == 3
     clean = depth_metrics(gt, gt)
     assert clean["nonfinite_pixels"] == clean["nonfinite_images"] == 0
+
+
+# ----------------------------------------------------------------------------- sky metrics
+def test_sky_metrics_worked_by_hand():
+    """A 6x6 image whose top two rows are sky: 12 sky pixels, 5 predicted at >= 0.9 x 50 m;
+    the band within 1 px of the sky is row 2, its gt 10 m, pred 12 m on half of it -> AbsRel
+    (3 x 0.2 + 3 x 0) / 6 = 0.1."""
+    from irdepth_jax.metrics import per_image_sky_metrics
+
+    sky = np.zeros((1, 6, 6), bool)
+    sky[0, :2] = True
+    pred = np.full((1, 6, 6), 10.0, np.float32)
+    pred[0, 0, :5] = 46.0  # >= 45: far
+    pred[0, 1, 0] = 44.0  # not far
+    pred[0, 2, :3] = 12.0
+    gt = np.where(sky, 0.0, 10.0).astype(np.float32)
+    out = per_image_sky_metrics(pred, gt, gt > 0, sky, 50.0, radius=1)
+    np.testing.assert_allclose(out["sky_far"], [5 / 12])
+    np.testing.assert_allclose(out["skyline_abs_rel"], [0.1], rtol=1e-6)
+    none = per_image_sky_metrics(pred, gt, gt > 0, np.zeros_like(sky), 50.0, radius=1)
+    assert np.isnan(none["sky_far"][0]) and np.isnan(none["skyline_abs_rel"][0])
+
+
+def test_sky_metrics_match_a_scipy_dilation():
+    """The skyline band is scipy's binary dilation of the sky by a (2r+1)^2 square, minus the
+    sky; random images, radius 3."""
+    from scipy import ndimage
+
+    from irdepth_jax.metrics import per_image_sky_metrics
+
+    rng = np.random.default_rng(0)
+    sky = rng.random((3, 20, 24)) < 0.1
+    gt = np.where(sky, 0.0, rng.uniform(1, 60, sky.shape)).astype(np.float32)
+    mask = (gt > 0) & (rng.random(sky.shape) < 0.7)
+    pred = rng.uniform(1, 90, sky.shape).astype(np.float32)
+    out = per_image_sky_metrics(pred, gt, mask, sky, 70.0, radius=3)
+    for b in range(3):
+        band = ndimage.binary_dilation(sky[b], np.ones((7, 7), bool)) & ~sky[b] & mask[b]
+        p = np.clip(pred[b], 1e-3, 80.0)
+        np.testing.assert_allclose(out["skyline_abs_rel"][b],
+                                   np.mean(np.abs(p[band] - gt[b][band]) / gt[b][band]), rtol=1e-5)
+        np.testing.assert_allclose(out["sky_far"][b], np.mean(pred[b][sky[b]] >= 63.0), rtol=1e-6)
+
+
+def test_sky_accumulator_counts_only_labelled_frames():
+    from irdepth_jax.metrics import SkyMetricAccumulator
+
+    sky = np.zeros((2, 6, 6), bool)
+    sky[:, :2] = True
+    gt = np.where(sky, 0.0, 10.0).astype(np.float32)
+    far = np.where(sky, 80.0, 10.0).astype(np.float32)
+    acc = SkyMetricAccumulator(50.0, radius=1)
+    acc.update(far, gt, gt > 0, sky, np.array([True, False]), ["day", "night"])
+    acc.update(np.zeros_like(far), gt, gt > 0, sky, np.array([True, True]), ["day", "day"])
+    res = acc.result()
+    assert res["all"]["sky_far_count"] == 3 and res["all"]["sky_far"] == pytest.approx(1 / 3)
+    assert res["night"]["sky_far_count"] == 0 and np.isnan(res["night"]["sky_far"])
+    assert np.isnan(acc.per_image()["sky_far"][1])
