@@ -171,6 +171,8 @@ def cmd_train(args) -> int:
     cfg = load_config(args.preset, args.config, _overrides(args.overrides))
     if args.stage == "stage1" and args.stage1_checkpoint:
         raise CliError("--stage1-checkpoint is for train stage2")
+    if args.stage1_checkpoint:
+        cfg = _stage1_settings(cfg, args.stage1_checkpoint, args.overrides)
     source = DataSource(args.data, args.format, strict=args.strict, raw_bits=cfg.data.raw_bits)
     start = time.perf_counter()
     # one process takes the lock (a multi-host run's processes may share the directory)
@@ -203,6 +205,20 @@ def cmd_train(args) -> int:
         print(f"stage2 done ({time.perf_counter() - start:.0f} s); checkpoints in "
               f"{args.workdir}/checkpoints/stage2")
     return 0
+
+
+def _stage1_settings(cfg, stage1_checkpoint: str, overrides: list[str]):
+    """`cfg` with the Stage I model's settings from --stage1-checkpoint (a conflicting
+    ``key=value`` refused), and a note naming those that differ from the preset's."""
+    from irdepth_jax.config import override_keys
+    from irdepth_jax.train.variables import take_stage1_settings
+
+    cfg, taken = take_stage1_settings(stage1_checkpoint, cfg, override_keys(overrides))
+    if taken:
+        settings = " ".join(f"{key}={new}" for key, (_, new) in taken.items())
+        print(f"irdepth: note: Stage II uses the Stage I model's {settings} (from "
+              f"--stage1-checkpoint {stage1_checkpoint})", file=sys.stderr)
+    return cfg
 
 
 def cmd_eval(args) -> int:

@@ -31,7 +31,7 @@ from irdepth_jax.train.runlog import RunLog, prepare_workdir
 from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
 from irdepth_jax.train.steps import stage1_loss_fn, stage2_loss_fn
 from irdepth_jax.train.validate import check_run
-from irdepth_jax.train.variables import init_depth, init_unet, load_stage1
+from irdepth_jax.train.variables import init_depth, init_unet, load_stage1, take_stage1_settings
 from irdepth_jax.train.workdir_lock import last_checkpoint
 
 
@@ -174,9 +174,16 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     """Stage II: Depth Anything V2 on the frozen Stage I model's HSV images (or a baseline
     pre-processing, `cfg.stage2.preprocessing`) into `opts.workdir`.
 
+    The settings that define the Stage I model (`config.STAGE1_MODEL_KEYS`) are taken from
+    `opts.stage1_checkpoint` (`take_stage1_settings`), so the run's config describes the model
+    it trains on.
+
     Returns {'unet': Stage I variables or None, 'depth': final Depth Anything V2 params}.
     """
 
+    taken = {}
+    if opts.stage1_checkpoint is not None:
+        cfg, taken = take_stage1_settings(opts.stage1_checkpoint, cfg)
     cfg = resolve_raw_bits(cfg, source)
     check_run(cfg, source, opts, "stage2")
     s2 = cfg.stage2
@@ -202,6 +209,8 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
                  hue_mode=s2.hue_mode, sky_loss=(f"on, reference depth {ref_depth:.2f} m"
                                                  if s2.sky_loss else "off"))
+        if taken:
+            log.info("stage2", settings_from_stage1={k: f"{v[1]} (was {v[0]})" for k, v in taken.items()})
         log.info("stage2", **depth_init)
         total = steps_for(s2.epochs, opts.steps if opts.steps is not None else s2.steps,
                           len(train_idx), s2.batch_size)

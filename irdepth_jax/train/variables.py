@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import Config, from_dict, resolved_raw_bits
+from irdepth_jax.config import STAGE1_MODEL_KEYS, Config, from_dict, get_key, resolved_raw_bits, with_keys
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
@@ -105,6 +105,48 @@ def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
                 f"depth.max_depth={d.max_depth:g} scales its output by "
                 f"{d.max_depth / file_cfg.max_depth:.3g}")
     return params, described
+
+
+def take_stage1_settings(path: str, cfg: Config, explicit: Collection[str] = ()
+                         ) -> tuple[Config, dict[str, tuple[Any, Any]]]:
+    """`cfg` with every setting that defines the Stage I model (`STAGE1_MODEL_KEYS`: the UNet's
+    sizes and switches, its raw normalisation, the bit depth) taken from the Stage I run at
+    `path`, the config that Stage II then stores, so that eval and predict rebuild the model it
+    was trained with.
+
+    Args:
+      path: the Stage I run (workdir or checkpoint directory), as for `load_stage1`.
+      cfg: the Stage II run's config.
+      explicit: dotted keys the user set (``key=value``); one of them set to another value
+        than Stage I's is refused (data.raw_bits=auto is not: it resolves to Stage I's).
+    Returns:
+      (config, {key: (value in `cfg`, Stage I's value)} for each setting that changed).
+    Raises:
+      RunError naming the key (or the missing checkpoint).
+    """
+    try:
+        directory, _ = find_checkpoint(path, STAGE1_STAGES)
+        stored = from_dict(read_meta(directory)["config"])
+    except CheckpointError as err:
+        raise RunError(f"--stage1-checkpoint: {err}") from None
+    changed = {}
+    for key in STAGE1_MODEL_KEYS:
+        mine, theirs = get_key(cfg, key), get_key(stored, key)
+        if mine == theirs or (key == "data.raw_bits" and mine == "auto"):
+            continue
+        if key in explicit:
+            trained = (f"Stage I was trained on {theirs}-bit raw counts" if key == "data.raw_bits"
+                       else f"the Stage I model has {key}={_word(theirs)}")
+            raise RunError(f"--stage1-checkpoint {path}: {trained}, this run sets "
+                           f"{key}={_word(mine)}; Stage II takes {key} from Stage I: leave it "
+                           "out, or retrain Stage I with it")
+        changed[key] = (mine, theirs)
+    return with_keys(cfg, {key: new for key, (_, new) in changed.items()}), changed
+
+
+def _word(value: Any) -> str:
+    """A config value as it is written in a ``key=value`` override."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
