@@ -8,7 +8,7 @@ it compiles once.
 
 Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256),
 ``NAME_depth_color.png`` and, for models with a UNet, ``NAME_rgb.png`` (pseudo-RGB) and
-``NAME_hsv.png`` (H, S, V as 8-bit channels). Video mode (``--video``): one ``NAME.mp4`` per
+``NAME_hsv.png`` (H, S, V as its 8-bit R, G, B channels). Video mode (``--video``): one ``NAME.mp4`` per
 sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
 raw tone-mapped | pseudo-RGB of the HSV image | coloured depth side by side, and with
 ``--depth-png`` the 16-bit depth PNGs of its frames too.
@@ -127,7 +127,8 @@ def output_pngs(images: dict, max_depth: float) -> dict:
     rgb, hsv (8-bit), depth (16-bit, metres x 256) and depth_color."""
     pngs = {}
     if "rgb" in images:
-        pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])
+        # reversed for OpenCV, so that the files hold R, G, B and H, S, V in channel order
+        pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])[..., ::-1]
     if "depth" in images:
         pngs["depth"] = depth_png(images["depth"])
         pngs["depth_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
