@@ -21,6 +21,7 @@ import warnings
 
 from irdepth_jax.cli_commands import (
     CliError,
+    check_usage,
     cmd_eval,
     cmd_export,
     cmd_predict,
@@ -203,7 +204,7 @@ def _add_eval(sub) -> None:
 
 def _add_predict(sub) -> None:
     """The `irdepth predict` sub-command."""
-    from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
+    from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
     p = sub.add_parser("predict", help="depth maps from raw thermal frames",
@@ -324,6 +325,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if extra:
         args.overrides = list(args.overrides) + extra
+    try:  # before JAX and the model are loaded: a mistyped path is reported at once
+        check_usage(args)
+    except CliError as err:
+        print(f"irdepth: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     from irdepth_jax.data.folder import DatasetError
     from irdepth_jax.errors import Interrupted, RunError
     from irdepth_jax.train.checkpoint import CheckpointError

@@ -98,6 +98,30 @@ def _check_out_dir(path: str | None) -> None:
         raise CliError(f"--out {path}: exists and is not a directory")
 
 
+PATH_FLAGS = {"train": ("data", "stage1_checkpoint", "config"),
+              "eval": ("checkpoint", "workdir", "data"),
+              "predict": ("checkpoint", "inputs"),
+              "export": ("checkpoint", "sample")}
+"""The flags of each command that name paths which must exist (`check_usage`)."""
+
+
+def check_usage(args) -> None:
+    """CliError (one line naming the flag) for a path that must exist and does not, an --out
+    that is a file, or flags that do not go together: checked before anything is imported or
+    loaded, so that a usage error is reported within a second, not after JAX and the model."""
+    if args.command in ("eval", "predict"):
+        _check_out_dir(args.out)
+    for flag in PATH_FLAGS.get(args.command, ()):
+        value = getattr(args, flag, None)
+        for path in value if isinstance(value, list) else [value]:
+            if path is not None and not os.path.exists(path):
+                where = "" if flag == "inputs" else f"--{flag.replace('_', '-')} "
+                raise CliError(f"{where}{path}: no such file or directory")
+    if args.command == "predict" and args.depth_png and not args.video:
+        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
+                       "every frame's PNGs are written anyway)")
+
+
 def _run_options(args, workdir: str, resume: bool):
     from irdepth_jax.train.phase import RunOptions
 
@@ -224,7 +248,6 @@ def _stage1_settings(cfg, stage1_checkpoint: str, overrides: list[str]):
 def cmd_eval(args) -> int:
     from irdepth_jax.evaluate import evaluate_run, nonfinite_warning
 
-    _check_out_dir(args.out)
     path = args.checkpoint or args.workdir
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
                           overrides=_overrides(args.overrides), stride=args.stride,
@@ -242,10 +265,6 @@ def cmd_eval(args) -> int:
 def cmd_predict(args) -> int:
     from irdepth_jax.predict import predict_files
 
-    _check_out_dir(args.out)
-    if args.depth_png and not args.video:
-        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
-                       "every frame's PNGs are written anyway)")
     written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
                             raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
                             batch_size=args.batch_size, video=args.video,

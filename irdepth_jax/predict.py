@@ -29,11 +29,7 @@ from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
 from irdepth_jax.data.loader import prefetch
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_png
-
-DEFAULT_BATCH = {"cpu": 1, "gpu": 8}
-"""Frames per model call by backend. On a 2-core CPU batches are slower, not faster (`paper` UNet
-+ ViT-S at 512x640: 0.38 frames/s at batch 1, 0.31 at batch 8, `experiments/bench_predict.py`:
-the activations of 8 frames no longer fit the caches); a GPU needs batches to fill it."""
+from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
 def default_batch_size() -> int:
@@ -41,8 +37,6 @@ def default_batch_size() -> int:
     import jax
 
     return DEFAULT_BATCH.get(jax.default_backend(), DEFAULT_BATCH["gpu"])
-DEFAULT_FPS = 15.0
-"""Frame rate of the depth videos (MS2's thermal camera records at 15 Hz)."""
 READ_AHEAD = 2
 """Batches decoded ahead of the model."""
 WRITERS = 2
