@@ -113,8 +113,8 @@ def _add_synth(sub) -> None:
                                    "LiDAR-like depth, labels) into a folder dataset.")
     p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
     p.add_argument("--n", type=int, default=96, help="number of frames (default 96)")
-    p.add_argument("--labeled", type=int, default=48,
-                   help="frames with segmentation labels (default 48)")
+    p.add_argument("--labeled", type=int, default=None,
+                   help="frames with segmentation labels (default: half of --n)")
     p.add_argument("--size", type=_parse_size, default=(64, 80), metavar="HxW",
                    help="frame size, e.g. 256x320 (default 64x80)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
@@ -191,10 +191,12 @@ def _add_eval(sub) -> None:
                    help="evaluate frames[0:-1:N] of the split's frame list (all sequences "
                         "concatenated), as the official MS2 loader does; the MS2 test protocol "
                         "is --stride 10 (default 1: every frame)")
-    p.add_argument("--align", default="none", choices=("none", "median", "scale_shift"),
+    p.add_argument("--align", default="auto", choices=("auto", "none", "median", "scale_shift"),
                    help="per-image alignment of the predicted depth before the metrics: "
-                        "median scaling or least-squares scale and shift (default none); "
-                        "predictions are then clamped to [data.min_depth, data.max_depth]")
+                        "median scaling or least-squares scale and shift (default auto: none "
+                        "for a metric model, median for a relative one, depth.metric=false, "
+                        "which refuses none); predictions are then clamped to "
+                        "[data.min_depth, data.max_depth]")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
     _compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",

@@ -10,6 +10,8 @@ import os
 import sys
 import time
 
+from irdepth_jax.errors import counted
+
 
 class CliError(Exception):
     """A one-line user error."""
@@ -109,6 +111,8 @@ def check_usage(args) -> None:
     """CliError (one line naming the flag) for a path that must exist and does not, an --out
     that is a file, or flags that do not go together: checked before anything is imported or
     loaded, so that a usage error is reported within a second, not after JAX and the model."""
+    if args.command == "synth":
+        _check_synth(args)
     if args.command in ("eval", "predict"):
         _check_out_dir(args.out)
     for flag in PATH_FLAGS.get(args.command, ()):
@@ -132,13 +136,28 @@ def _run_options(args, workdir: str, resume: bool):
 
 
 # --------------------------------------------------------------------------- commands
+def _check_synth(args) -> None:
+    """CliError for `irdepth synth` counts that do not go together or an --out that holds
+    files (without --overwrite); --labeled defaults to half of --n."""
+    if args.n < 1:
+        raise CliError(f"--n {args.n}: render at least one frame")
+    if args.labeled is None:
+        args.labeled = args.n // 2
+    if not 0 <= args.labeled <= args.n:
+        raise CliError(f"--labeled {args.labeled}: choose 0 to --n ({args.n})")
+    if os.path.isdir(args.out) and os.listdir(args.out) and not args.overwrite:
+        raise CliError(f"--out {args.out}: directory exists and is not empty; choose another "
+                       "path, or pass --overwrite to replace the dataset")
+
+
 def cmd_synth(args) -> int:
     from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
     height, width = args.size
     path = write_synthetic_dataset(args.out, args.n, args.labeled, height, width, seed=args.seed,
                                    progress=not args.no_progress, overwrite=args.overwrite)
-    print(f"wrote {args.n} frames ({args.labeled} labelled, {height}x{width}) to {path}")
+    print(f"wrote {counted(args.n, 'frame')} ({args.labeled} labelled, {height}x{width}) to "
+          f"{path}")
     return 0
 
 
@@ -251,7 +270,7 @@ def cmd_eval(args) -> int:
     path = args.checkpoint or args.workdir
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
                           overrides=_overrides(args.overrides), stride=args.stride,
-                          align=None if args.align == "none" else args.align,
+                          align=args.align,
                           strict=args.strict)
     print(result["markdown"])
     warning = nonfinite_warning(result)
@@ -271,8 +290,8 @@ def cmd_predict(args) -> int:
                             depth_png_frames=args.depth_png, fps=args.fps,
                             progress=not args.no_progress)
     videos = sum(f.endswith(".mp4") for f in written)
-    what = f"{videos} videos and {len(written) - videos} files" if args.video else \
-        f"{len(written)} files"
+    what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
+            if args.video else counted(len(written), "file"))
     print(f"wrote {what} to {args.out}")
     return 0
 
@@ -285,8 +304,9 @@ def cmd_export(args) -> int:
     meta = export_model(args.checkpoint, args.format, args.height, args.width, args.batch,
                         args.out, sample=args.sample)
     check = meta["check"]
-    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on {check['frames']} "
-          f"{'synthetic' if args.sample is None else 'sample'} frames (tolerance "
+    kind = "synthetic frame" if args.sample is None else "sample frame"
+    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on "
+          f"{counted(check['frames'], kind)} (tolerance "
           f"{check['tolerance']:.3g} m)")
     print(f"wrote {args.out} and {metadata_path(args.out)}")
     return 0

@@ -6,7 +6,8 @@ thread pool while the next batch computes, so decoding, the model and encoding o
 frame size runs at one batch size (the last batch of a size is padded with its last frame), so
 it compiles once.
 
-Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256),
+Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256; a relative-depth model
+writes ``NAME_depth_relative.png``, depth x 256 up to an unknown scale),
 ``NAME_depth_color.png`` and, for models with a UNet, ``NAME_rgb.png`` (pseudo-RGB) and
 ``NAME_hsv.png`` (H, S, V as its 8-bit R, G, B channels). Video mode (``--video``): one ``NAME.mp4`` per
 sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
@@ -116,16 +117,22 @@ def _checked(file: str, name: str, images: dict) -> dict:
     return images
 
 
-def output_pngs(images: dict, max_depth: float) -> dict:
+def depth_suffix(cfg: Config) -> str:
+    """The file suffix of a model's depth output: 'depth' (metres) for a metric model,
+    'depth_relative' for a relative one (depth.metric=false: depth up to an unknown scale)."""
+    return "depth" if cfg.depth.metric else "depth_relative"
+
+
+def output_pngs(images: dict, max_depth: float, depth_name: str = "depth") -> dict:
     """The PNGs (OpenCV BGR order) of one frame's finite predictions, by file suffix:
-    rgb, hsv (8-bit), depth (16-bit, metres x 256) and depth_color."""
+    rgb, hsv (8-bit), `depth_name` (16-bit, depth x 256) and `depth_name`_color."""
     pngs = {}
     if "rgb" in images:
         # reversed for OpenCV, so that the files hold R, G, B and H, S, V in channel order
         pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])[..., ::-1]
     if "depth" in images:
-        pngs["depth"] = depth_png(images["depth"])
-        pngs["depth_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
+        pngs[depth_name] = depth_png(images["depth"])
+        pngs[f"{depth_name}_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
     return pngs
 
 
@@ -283,6 +290,11 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
                   f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
                   "a scale it did not see in training", file=sys.stderr)
+    if model["depth"] is not None and not cfg.depth.metric:
+        print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
+              "NAME_depth_relative.png holds depth x 256 up to an unknown scale, not metres; "
+              "scale it to metres with known distances (irdepth eval --align median does it "
+              "per image against ground truth)", file=sys.stderr)
     make_dirs(out_dir)
     predictor = Predictor(cfg, model, bits)
     from tqdm.auto import tqdm
@@ -300,7 +312,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             sizes = batch_sizes(found, batch_size)
 
             def emit(frame: Frame, images: dict) -> None:
-                for kind, image in output_pngs(images, cfg.data.max_depth).items():
+                for kind, image in output_pngs(images, cfg.data.max_depth,
+                                               depth_suffix(cfg)).items():
                     writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
                 bar.update(1)
 
@@ -353,7 +366,7 @@ def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
     def emit(frame: Frame, images: dict) -> None:
         video.write(video_panels(frame.raw, images, predictor.bits, max_depth))
         if with_depth_png and "depth" in images:
-            writers.submit(os.path.join(out_dir, f"{frame.name}_depth.png"),
+            writers.submit(os.path.join(out_dir, f"{frame.name}_{depth_suffix(predictor.cfg)}.png"),
                            depth_png(images["depth"]))
         bar.update(1)
 

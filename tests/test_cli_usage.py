@@ -44,3 +44,27 @@ def test_usage_errors_come_before_jax(tmp_path, argv, message):
     assert err.startswith(f"irdepth: error: {message.format(tmp=tmp_path)}"), err
     assert len(err.splitlines()) == 1
     assert seconds < 3, seconds
+
+
+def test_synth_defaults_fit_any_n(tmp_path, capsys):
+    """--labeled defaults to half of --n (a fixed 48 exceeded --n 4); counts read as English;
+    errors name flags, not API keywords."""
+    from irdepth_jax import cli
+
+    out = tmp_path / "d"
+    assert cli.main(["synth", "--out", str(out), "--n", "4", "--size", "16x24",
+                     "--no-progress"]) == 0
+    assert "wrote 4 frames (2 labelled, 16x24)" in capsys.readouterr().out
+    assert cli.main(["synth", "--out", str(tmp_path / "one"), "--n", "1", "--size", "16x24",
+                     "--no-progress"]) == 0
+    assert "wrote 1 frame (0 labelled" in capsys.readouterr().out
+    for argv, message in (
+            (["--out", str(out), "--n", "4"],
+             f"--out {out}: directory exists and is not empty; choose another path, or pass "
+             "--overwrite to replace the dataset"),
+            (["--out", str(tmp_path / "e"), "--n", "4", "--labeled", "5"],
+             "--labeled 5: choose 0 to --n (4)")):
+        assert cli.main(["synth", *argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.strip() == f"irdepth: error: {message}", err
+    assert not (tmp_path / "e").exists()

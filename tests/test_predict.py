@@ -107,7 +107,7 @@ def test_video_of_synthetic_frames(model, tmp_path, capsys):
     code, stdout, err = run(["predict", "--checkpoint", work, "--out", out, "--video",
                              "--depth-png", "--fps", "10", "--batch-size", "3", folder], capsys)
     assert code == 0, err
-    assert "wrote 1 videos and 8 files" in stdout
+    assert "wrote 1 video and 8 files" in stdout
     assert video_info(out / "drive.mp4") == {"frames": 8, "height": height,
                                              "width": 3 * width, "fps": 10.0}
     assert sorted(os.listdir(out)) == [f"{k:04d}_depth.png" for k in range(8)] + ["drive.mp4"]

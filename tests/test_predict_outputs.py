@@ -1,13 +1,17 @@
-"""What `irdepth predict` writes says what it is: the HSV PNG holds H, S, V in channel order
-(read as any image library reads it). An untrained tiny model (`save_model`): these tests check
+"""What `irdepth predict` and `eval` write says what it is: the HSV PNG holds H, S, V in channel
+order (read as any image library reads it); a relative-depth model's outputs are named so and
+evaluated aligned. An untrained tiny model (`save_model`): these tests check
 the files, not what a model learnt."""
+
+import json
 
 import numpy as np
 import pytest
+from ms2_layout import LIST_NAMES, partial_ms2
 from PIL import Image
 
 from irdepth_jax import cli
-from irdepth_jax.config import get_config
+from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.fileio import write_png
 from irdepth_jax.models.pipeline import run_pipeline
@@ -53,3 +57,54 @@ def test_hsv_png_holds_h_s_v_in_channel_order(model, frame, tmp_path, capsys):
             stored = np.asarray(image).astype(np.float64) / 255
         want = np.asarray(result[kind])[0]
         assert np.abs(stored - want).max() <= 0.5 / 255 + 1e-6, kind
+
+
+@pytest.fixture(scope="module")
+def relative_model(tmp_path_factory):
+    """Workdir of an untrained tiny Stage II model with the relative head (depth.metric=false)."""
+    work = tmp_path_factory.mktemp("relative") / "run"
+    cfg = apply_overrides(CFG, ["depth.metric=false"])
+    save_model(str(work), cfg, init_unet(cfg), random_depth(cfg))
+    return work
+
+
+def test_relative_depth_is_labelled_as_such(relative_model, frame, tmp_path, capsys):
+    code, _, err = run(["predict", "--checkpoint", relative_model, "--out", tmp_path,
+                        frame[1]], capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "scene_depth_relative.png", "scene_depth_relative_color.png", "scene_hsv.png",
+        "scene_rgb.png"]
+    assert "predicts relative depth (depth.metric=false)" in err and "not metres" in err
+
+
+def test_relative_depth_is_evaluated_aligned(relative_model, synthetic_data, tmp_path, capsys):
+    argv = ["eval", "--checkpoint", relative_model, "--data", synthetic_data, "--out", tmp_path]
+    code, _, err = run([*argv, "--align", "none"], capsys)
+    assert code == 2 and "relative-depth model" in err and "--align median" in err, err
+    code, out, err = run(argv, capsys)
+    assert code == 0, err
+    protocol = json.loads((tmp_path / "eval_test.json").read_text())["protocol"]
+    assert protocol["align"] == "median" and protocol["depth"] == "relative"
+    assert "alignment median (a relative-depth model" in out
+
+
+@pytest.fixture(scope="module")
+def ms2_root(tmp_path_factory):
+    """A small MS2 root: split lists of its own, one test_day sequence of 3 frames 32x48."""
+    lists = tmp_path_factory.mktemp("lists")
+    for name, seq in zip(LIST_NAMES, ("_tr", "_va", "_day", "_night", "_rain")):
+        (lists / name).write_text(seq + "\n")
+    return partial_ms2(lists, tmp_path_factory.mktemp("ms2") / "MS2", ["_day"], size=(32, 48))
+
+
+def test_ms2_eval_leaves_out_psnr_against_our_own_tone_map(model, ms2_root, tmp_path, capsys):
+    code, out, err = run(["eval", "--checkpoint", model[0], "--data", ms2_root, "--split",
+                          "test_day", "--out", tmp_path], capsys)
+    assert code == 0, err
+    result = json.loads((tmp_path / "eval_test_day.json").read_text())
+    assert result["stage1"]["all"].keys() >= {"entropy", "miou"}
+    assert not {"psnr", "ssim"} & result["stage1"]["all"].keys()
+    assert result["protocol"]["reconstruction"] is None
+    assert "psnr" not in out.split("PSNR / SSIM left out")[0].lower()
+    assert "PSNR / SSIM left out: this dataset has no 8-bit camera image" in out
