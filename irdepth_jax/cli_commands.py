@@ -273,6 +273,8 @@ def cmd_eval(args) -> int:
                           align=args.align,
                           strict=args.strict)
     print(result["markdown"])
+    for line in result["warnings"]:
+        print(f"irdepth: WARNING: {line}", file=sys.stderr)
     warning = nonfinite_warning(result)
     if warning:
         print(f"irdepth: WARNING: {warning}", file=sys.stderr)
@@ -326,4 +328,24 @@ def cmd_quickstart(args) -> int:
     print("\n".join(improvement_lines(result)))
     print(f"quickstart finished in {result['seconds']:.0f} s; data, runs and tables "
           f"({work}/stage2/eval_test.md) are in {work}")
+    print("\n".join(quickstart_next_steps(work, result["config"])))
     return 0
+
+
+def quickstart_next_steps(work: str, cfg) -> list[str]:
+    """What the quickstart made, and the commands that train a model for real frames."""
+    d = cfg.data
+    return [
+        f"What it made: {work}/data ({d.num_frames} synthetic frames of {d.height}x{d.width}), "
+        f"{work}/stage1 and {work}/stage2: a {cfg.name} model trained on synthetic frames, its "
+        "depth network from random weights. It shows the pipeline runs; its depth on real "
+        "camera frames means nothing (predict and eval warn so).",
+        "Next, a model for real frames: MS2 (or a folder dataset, README 'Data: our folder "
+        "format': --data FOLDER) and the released Depth Anything V2 weights "
+        "(depth_anything_v2_metric_vkitti_vits.pth):",
+        "  irdepth train stage1 --preset paper --data MS2_ROOT --workdir runs/s1 "
+        "stage1.seg_labels=synthetic",
+        "  irdepth train stage2 --preset paper --data MS2_ROOT --workdir runs/s2 "
+        "--stage1-checkpoint runs/s1 depth.checkpoint=depth_anything_v2_metric_vkitti_vits.pth",
+        "  irdepth eval --workdir runs/s2 --data MS2_ROOT --split test_day --stride 10",
+        "  irdepth predict --checkpoint runs/s2 --out preds MS2_ROOT/sync_data/SEQ/thr/img_left"]

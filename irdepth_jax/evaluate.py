@@ -21,7 +21,7 @@ from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import make_dirs, write_bytes
 from irdepth_jax.metrics import DEPTH_METRICS
 from irdepth_jax.train.parallel import DataParallel
-from irdepth_jax.train.variables import load_model
+from irdepth_jax.train.variables import describe_trained_on, input_warnings, load_model
 
 
 def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
@@ -43,7 +43,9 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
       strict: MS2: a listed sequence that is not on disk is an error (default: skipped with a
         warning).
     Returns:
-      {'stage', 'split', 'protocol': {'stride', 'frames', 'align', 'clamp': [min, max] m,
+      {'stage', 'split', 'trained_on' (`read_trained_on`), 'warnings' (the ways the split's
+      frames differ in kind from the training frames: `input_warnings`), 'protocol': {'stride',
+      'frames', 'align', 'clamp': [min, max] m,
       'depth': 'metric' | 'relative', 'reconstruction': what PSNR / SSIM compare with}, 'stage1':
       table or None (no psnr / ssim for MS2, which has no camera 8-bit image), 'stage2': table
       or None, 'markdown'}.
@@ -54,6 +56,7 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
     dataset, indices = source.frames(split, stride=stride)
     if len(indices) == 0:
         raise RunError(f"--data {data}: split {split!r} has no frames")
+    described = source.describe(split)
     dp = dp or DataParallel("single")
     result: dict[str, Any] = {
         "stage": stage, "split": split, "stage1": None, "stage2": None,
@@ -62,7 +65,9 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                      "depth": "metric" if cfg.depth.metric else "relative",
                      "reconstruction": (None if source.format == "ms2"
                                         else "the dataset's 8-bit camera image (ir8)")},
-        "segmentation_branch": model["segmentation"]}
+        "segmentation_branch": model["segmentation"], "trained_on": model["trained_on"],
+        "warnings": input_warnings(model["trained_on"], {tuple(described["frame_size"])},
+                                   described["kind"])}
     if model["unet"] is not None:
         result["stage1"] = evaluate_stage1(cfg, model["unet"], dataset, indices, dp,
                                            seg_frames=source.seg_frames(split))
@@ -128,6 +133,10 @@ def format_tables(result: dict) -> str:
     parts.append(f"Protocol: {counted(protocol['frames'], 'image')} ({frames} of the split); depth: "
                  f"alignment {protocol['align']}{relative}, predictions clamped to [{low:g}, "
                  f"{high:g}] m (the valid ground-truth range).\n")
+    if "trained_on" in result:
+        parts.append(f"Model: {describe_trained_on(result['trained_on'])}.\n")
+    for line in result.get("warnings", []):
+        parts.append(f"**Warning: {line}.**\n")
     warning = nonfinite_warning(result)
     if warning:
         parts.append(f"**Warning: {warning}.**\n")

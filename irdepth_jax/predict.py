@@ -290,6 +290,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
                   f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
                   "a scale it did not see in training", file=sys.stderr)
+    _say_what_it_was_trained_on(path, model["trained_on"],
+                                {shape for sequence in found for shape, _ in sequence.shapes})
     if model["depth"] is not None and not cfg.depth.metric:
         print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
               "NAME_depth_relative.png holds depth x 256 up to an unknown scale, not metres; "
@@ -324,6 +326,16 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         writers.close()
         bar.close()
     return writers.written
+
+
+def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
+    """Prints (stderr) what the model was trained on, and a warning for each way the inputs
+    differ from it in kind (`train.variables.input_warnings`)."""
+    from irdepth_jax.train.variables import describe_trained_on, input_warnings
+
+    print(f"irdepth: model {path}: {describe_trained_on(trained_on)}", file=sys.stderr)
+    for line in input_warnings(trained_on, shapes):
+        print(f"irdepth: WARNING: {line}", file=sys.stderr)
 
 
 def video_name(sequence: ThermalInput) -> str:

@@ -108,6 +108,17 @@ class DataSource:
         dataset = ConcatFrames(parts)
         return dataset, np.arange(len(dataset))
 
+    def describe(self, split: str = "train") -> dict:
+        """What the frames of `split` are, as a checkpoint records it: {'kind': 'synthetic'
+        (a dataset `irdepth synth` rendered) or 'real', 'format': 'folder' | 'ms2', 'path'
+        (absolute), 'frame_size': [H, W] (of the split's first frame)}."""
+        dataset, idx = self.frames(split)
+        synthetic = self._folder is not None and self._folder.meta.get("source") == "synthetic"
+        height, width = (self._folder.height, self._folder.width) if self._folder is not None \
+            else dataset.raw(int(idx[0])).shape
+        return {"kind": "synthetic" if synthetic else "real", "format": self.format,
+                "path": os.path.abspath(self.path), "frame_size": [int(height), int(width)]}
+
     def use_raw_bits(self, raw_bits: int | str) -> int:
         """Checks every frame read from now on against `raw_bits` (14, 16 or 'auto'), 'auto'
         resolved from the training frames (`data.rawio.detect_raw_bits`: 16 when a count exceeds
