@@ -271,7 +271,7 @@ def cmd_eval(args) -> int:
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
                           overrides=_overrides(args.overrides), stride=args.stride,
                           align=args.align,
-                          strict=args.strict)
+                          strict=args.strict, gt=args.gt)
     print(result["markdown"])
     for line in result["warnings"]:
         print(f"irdepth: WARNING: {line}", file=sys.stderr)

@@ -31,6 +31,12 @@ from typing import Any
 
 CLASS_NAMES: tuple[str, ...] = ("sky", "building", "car", "bicycle", "road", "tree")
 """Semantic classes of the paper, in label order (label 255 = unlabelled)."""
+MS2_DEPTH_LABELS: dict[str, str] = {
+    "depth_filtered": "proj_depth", "depth": "proj_depth", "depth_multi": "proj_depth",
+    "depth_gt": "sync_data", "depth_refl_gt": "sync_data"}
+"""MS2's depth label versions (<folder>/<seq>/thr/<name>/, uint16 metres x 256) by name, with
+the folder holding them (`data.ms2`; `irdepth eval --gt`); published numbers differ by about
+0.04 AbsRel between versions. 'depth_filtered' is the default (the official loader's)."""
 IGNORE_LABEL = 255
 SKY_CLASS = 0
 

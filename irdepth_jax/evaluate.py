@@ -27,7 +27,7 @@ from irdepth_jax.train.variables import describe_trained_on, input_warnings, loa
 def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                  out_dir: str | None = None, overrides: Sequence[str] = (),
                  dp: DataParallel | None = None, stride: int = 1, align: str | None = "auto",
-                 strict: bool = False) -> dict:
+                 strict: bool = False, gt: str | None = None) -> dict:
     """Evaluates a run on a split and writes ``eval_<split>.md`` and ``.json``.
 
     Args:
@@ -42,6 +42,8 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
         none for a metric one (`depth_alignment`).
       strict: MS2: a listed sequence that is not on disk is an error (default: skipped with a
         warning).
+      gt: MS2: the depth label version the metrics compare with (`data.ms2.DEPTH_LABELS`;
+        None: depth_filtered); recorded as protocol.ground_truth.
     Returns:
       {'stage', 'split', 'trained_on' (`read_trained_on`), 'warnings' (the ways the split's
       frames differ in kind from the training frames: `input_warnings`), 'protocol': {'stride',
@@ -52,7 +54,7 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
     """
     cfg, stage, model = load_model(path, overrides)
     align = depth_alignment(path, cfg, model["depth"] is not None, align)
-    source = DataSource(data, fmt, strict=strict, raw_bits=cfg.data.raw_bits)
+    source = DataSource(data, fmt, strict=strict, raw_bits=cfg.data.raw_bits, depth_label=gt)
     dataset, indices = source.frames(split, stride=stride)
     if len(indices) == 0:
         raise RunError(f"--data {data}: split {split!r} has no frames")
@@ -63,6 +65,8 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
         "protocol": {"stride": stride, "frames": len(indices), "align": align or "none",
                      "clamp": [cfg.data.min_depth, cfg.data.max_depth],
                      "depth": "metric" if cfg.depth.metric else "relative",
+                     "ground_truth": (f"MS2 {gt or 'depth_filtered'}" if source.format == "ms2"
+                                      else "the folder dataset's depth/"),
                      "reconstruction": (None if source.format == "ms2"
                                         else "the dataset's 8-bit camera image (ir8)")},
         "segmentation_branch": model["segmentation"], "trained_on": model["trained_on"],
@@ -132,7 +136,9 @@ def format_tables(result: dict) -> str:
                 if protocol.get("depth") == "relative" else "")
     parts.append(f"Protocol: {counted(protocol['frames'], 'image')} ({frames} of the split); depth: "
                  f"alignment {protocol['align']}{relative}, predictions clamped to [{low:g}, "
-                 f"{high:g}] m (the valid ground-truth range).\n")
+                 f"{high:g}] m (the valid ground-truth range)"
+                 + (f"; ground truth: {protocol['ground_truth']}" if "ground_truth" in protocol
+                    else "") + ".\n")
     if "trained_on" in result:
         parts.append(f"Model: {describe_trained_on(result['trained_on'])}.\n")
     for line in result.get("warnings", []):

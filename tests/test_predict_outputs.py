@@ -4,7 +4,9 @@ evaluated aligned. An untrained tiny model (`save_model`): these tests check
 the files, not what a model learnt."""
 
 import json
+import shutil
 
+import cv2
 import numpy as np
 import pytest
 from ms2_layout import LIST_NAMES, partial_ms2
@@ -108,3 +110,34 @@ def test_ms2_eval_leaves_out_psnr_against_our_own_tone_map(model, ms2_root, tmp_
     assert result["protocol"]["reconstruction"] is None
     assert "psnr" not in out.split("PSNR / SSIM left out")[0].lower()
     assert "PSNR / SSIM left out: this dataset has no 8-bit camera image" in out
+
+
+def test_ms2_eval_names_its_depth_label_version(model, ms2_root, synthetic_data, tmp_path,
+                                                capsys):
+    root = tmp_path / "MS2"
+    shutil.copytree(ms2_root, root)
+    filtered = root / "proj_depth" / "_day" / "thr" / "depth_filtered"
+    labels = root / "sync_data" / "_day" / "thr" / "depth_gt"
+    labels.mkdir()
+    for png in filtered.iterdir():  # another version: the same points, twice as far
+        depth = cv2.imread(str(png), cv2.IMREAD_UNCHANGED)
+        cv2.imwrite(str(labels / png.name), np.minimum(depth.astype(np.int64) * 2, 65535)
+                    .astype(np.uint16))
+    tables = {}
+    for gt in (None, "depth_gt"):
+        out = tmp_path / f"eval_{gt}"
+        code, stdout, err = run(["eval", "--checkpoint", model[0], "--data", root, "--split",
+                                 "test_day", "--out", out] + (["--gt", gt] if gt else []), capsys)
+        assert code == 0, err
+        name = gt or "depth_filtered"
+        assert f"ground truth: MS2 {name}." in stdout
+        tables[name] = json.loads((out / "eval_test_day.json").read_text())
+        assert tables[name]["protocol"]["ground_truth"] == f"MS2 {name}"
+    assert tables["depth_gt"]["stage2"]["all"]["abs_rel"] != \
+        tables["depth_filtered"]["stage2"]["all"]["abs_rel"]
+    code, _, err = run(["eval", "--checkpoint", model[0], "--data", root, "--split", "test_day",
+                        "--gt", "depth_multi", "--out", tmp_path / "m"], capsys)
+    assert code == 2 and "proj_depth/<seq>/thr/depth_multi" in err, err
+    code, _, err = run(["eval", "--checkpoint", model[0], "--data", synthetic_data, "--gt",
+                        "depth_gt", "--out", tmp_path / "f"], capsys)
+    assert code == 2 and "--gt depth_gt: depth label versions are MS2's" in err, err
