@@ -258,6 +258,12 @@ def _add_predict(sub) -> None:
                    help="with --video: also write each frame's 16-bit NAME_depth.png")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help=f"frame rate of the videos (default {DEFAULT_FPS:g})")
+    p.add_argument("--pointcloud", action="store_true",
+                   help="also write NAME.ply per frame: one point per pixel with depth, "
+                        "coloured by the pseudo-RGB image (needs --intrinsics)")
+    p.add_argument("--intrinsics", metavar="fx,fy,cx,cy|FILE",
+                   help="the thermal camera's intrinsics in pixels, or a calibration file "
+                        "(MS2's calib.npy: its K_thrL; or a .npy 3x3 matrix)")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
     _compile_cache_flag(p)
     _progress_flag(p)

@@ -121,6 +121,9 @@ def check_usage(args) -> None:
             if path is not None and not os.path.exists(path):
                 where = "" if flag == "inputs" else f"--{flag.replace('_', '-')} "
                 raise CliError(f"{where}{path}: no such file or directory")
+    if args.command == "predict" and args.pointcloud != (args.intrinsics is not None):
+        raise CliError("--pointcloud needs --intrinsics fx,fy,cx,cy (or a calibration file)"
+                       if args.pointcloud else "--intrinsics is for --pointcloud")
     if args.command == "predict" and args.depth_png and not args.video:
         raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
                        "every frame's PNGs are written anyway)")
@@ -290,7 +293,7 @@ def cmd_predict(args) -> int:
                             raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
                             batch_size=args.batch_size, video=args.video,
                             depth_png_frames=args.depth_png, fps=args.fps,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, intrinsics=args.intrinsics)
     videos = sum(f.endswith(".mp4") for f in written)
     what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
             if args.video else counted(len(written), "file"))

@@ -29,7 +29,7 @@ from irdepth_jax.config import Config
 from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
 from irdepth_jax.data.loader import prefetch
 from irdepth_jax.errors import RunError
-from irdepth_jax.fileio import make_dirs, write_png
+from irdepth_jax.fileio import make_dirs, write_bytes, write_png
 from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
@@ -222,6 +222,10 @@ class _Writers:
         self.futures.append((path, self.pool.submit(write_png, path, image)))
         self.check(block=False)
 
+    def submit_bytes(self, path: str, data: bytes) -> None:
+        self.futures.append((path, self.pool.submit(write_bytes, path, data)))
+        self.check(block=False)
+
     def check(self, block: bool = True) -> None:
         while self.futures and (block or self.futures[0][1].done()):
             path, future = self.futures.pop(0)
@@ -239,7 +243,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                   pattern: str | None = None, strict: bool = False,
                   batch_size: int | None = None, video: bool = False,
                   depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
-                  progress: bool = False) -> list[str]:
+                  progress: bool = False, intrinsics: str | None = None) -> list[str]:
     """Runs a trained model on raw frames and writes its outputs (see the module docstring).
 
     Args:
@@ -256,6 +260,9 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
       video: one MP4 per input sequence instead of per-frame images; `depth_png_frames`
         adds the 16-bit depth PNGs of its frames; `fps` is its frame rate.
       progress: a progress bar (frames/s) on stderr.
+      intrinsics: PNG mode: also write NAME.ply, the depth as a point cloud (one point per
+        pixel with depth > 0, coloured by the pseudo-RGB image), back-projected with these
+        camera intrinsics (`pointcloud.parse_intrinsics`: fx,fy,cx,cy or a calibration file).
     Returns:
       the written paths. All inputs are read (and checked) before anything is written.
     Raises:
@@ -277,6 +284,14 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     if model["depth"] is not None and cfg.stage2.preprocessing == "blank":
         raise RunError(f"{path}: a control model (stage2.preprocessing=blank) that never sees "
                        "the image; it predicts the same depth for every frame")
+    camera = None
+    if intrinsics is not None:
+        from irdepth_jax.pointcloud import parse_intrinsics
+
+        camera = parse_intrinsics(intrinsics)
+        if video or model["depth"] is None:
+            raise RunError("--pointcloud: per-frame point clouds of a depth model (not with "
+                           "--video or a Stage I model)")
     trained_bits = resolved_raw_bits(cfg)
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:
@@ -317,6 +332,12 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                 for kind, image in output_pngs(images, cfg.data.max_depth,
                                                depth_suffix(cfg)).items():
                     writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
+                if camera is not None:
+                    from irdepth_jax.pointcloud import point_cloud_ply
+
+                    colors = _to8(images["rgb"]) if "rgb" in images else display_raw(frame.raw, bits)
+                    writers.submit_bytes(os.path.join(out_dir, f"{frame.name}.ply"),
+                                         point_cloud_ply(images["depth"], colors, camera))
                 bar.update(1)
 
             _Pipelined(predictor, emit).run(

@@ -141,3 +141,46 @@ def test_ms2_eval_names_its_depth_label_version(model, ms2_root, synthetic_data,
     code, _, err = run(["eval", "--checkpoint", model[0], "--data", synthetic_data, "--gt",
                         "depth_gt", "--out", tmp_path / "f"], capsys)
     assert code == 2 and "--gt depth_gt: depth label versions are MS2's" in err, err
+
+
+def read_ply(path):
+    """(points (N, 3), colours (N, 3)) of a binary PLY written by `pointcloud.ply_bytes`."""
+    data = path.read_bytes()
+    header, body = data.split(b"end_header\n", 1)
+    count = int(next(ln for ln in header.decode().splitlines()
+                     if ln.startswith("element vertex")).split()[-1])
+    vertex = np.frombuffer(body, [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("r", "u1"),
+                                  ("g", "u1"), ("b", "u1")], count=count)
+    assert len(body) == vertex.nbytes
+    return (np.stack([vertex[c] for c in "xyz"], -1),
+            np.stack([vertex[c] for c in "rgb"], -1))
+
+
+def test_pointcloud_one_point_per_valid_pixel(model, frame, tmp_path, capsys):
+    work, unet, depth = model
+    raw, path = frame
+    fx, fy, cx, cy = 50.0, 40.0, 27.5, 19.5
+    calib = tmp_path / "calib.npy"  # MS2's form: a pickled dict of matrices
+    np.save(calib, {"K_thrL": np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]),
+                    "K_rgbL": np.eye(3)}, allow_pickle=True)
+    want_depth = np.asarray(run_pipeline(unet, depth, raw[None], CFG)["depth"])[0]
+    rgb = np.asarray(run_pipeline(unet, depth, raw[None], CFG)["rgb"])[0]
+    valid = want_depth > 0
+    for spec in (f"{fx},{fy},{cx},{cy}", str(calib)):
+        out = tmp_path / f"out_{len(spec)}"
+        code, _, err = run(["predict", "--checkpoint", work, "--out", out, "--pointcloud",
+                            "--intrinsics", spec, path], capsys)
+        assert code == 0, err
+        points, colours = read_ply(out / "scene.ply")
+        assert len(points) == valid.sum() > 0
+        v, u = np.nonzero(valid)
+        z = want_depth[valid]
+        np.testing.assert_allclose(points[:, 2], z, rtol=1e-4)
+        np.testing.assert_allclose(points[:, 0], (u - cx) * z / fx, rtol=1e-3, atol=1e-4)
+        np.testing.assert_allclose(points[:, 1], (v - cy) * z / fy, rtol=1e-3, atol=1e-4)
+        assert np.abs(colours / 255 - rgb[valid]).max() <= 0.5 / 255 + 1e-6
+    for argv, message in ((["--pointcloud"], "--pointcloud needs --intrinsics"),
+                          (["--pointcloud", "--intrinsics", "1,2,3"], "expected fx,fy,cx,cy")):
+        code, _, err = run(["predict", "--checkpoint", work, "--out", tmp_path / "bad", *argv,
+                            path], capsys)
+        assert code == 2 and message in err, err
