@@ -258,6 +258,13 @@ def _add_predict(sub) -> None:
                    help="with --video: also write each frame's 16-bit NAME_depth.png")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help=f"frame rate of the videos (default {DEFAULT_FPS:g})")
+    p.add_argument("--depth-range", metavar="auto|MIN:MAX",
+                   help="depth range of the coloured depth image and its colour bar, in metres "
+                        "(default 0:data.max_depth; auto: each frame's own, the default for a "
+                        "relative-depth model)")
+    p.add_argument("--cmap", default="turbo",
+                   help="matplotlib colour map of the coloured depth (default turbo: near red, "
+                        "far blue)")
     p.add_argument("--pointcloud", action="store_true",
                    help="also write NAME.ply per frame: one point per pixel with depth, "
                         "coloured by the pseudo-RGB image (needs --intrinsics)")

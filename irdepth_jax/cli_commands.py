@@ -293,7 +293,8 @@ def cmd_predict(args) -> int:
                             raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
                             batch_size=args.batch_size, video=args.video,
                             depth_png_frames=args.depth_png, fps=args.fps,
-                            progress=not args.no_progress, intrinsics=args.intrinsics)
+                            progress=not args.no_progress, intrinsics=args.intrinsics,
+                            depth_range=args.depth_range, cmap=args.cmap)
     videos = sum(f.endswith(".mp4") for f in written)
     what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
             if args.video else counted(len(written), "file"))

@@ -28,6 +28,7 @@ import numpy as np
 from irdepth_jax.config import Config
 from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
 from irdepth_jax.data.loader import prefetch
+from irdepth_jax.depth_colours import DepthColours, depth_colours
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_bytes, write_png
 from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
@@ -123,16 +124,17 @@ def depth_suffix(cfg: Config) -> str:
     return "depth" if cfg.depth.metric else "depth_relative"
 
 
-def output_pngs(images: dict, max_depth: float, depth_name: str = "depth") -> dict:
+def output_pngs(images: dict, colours: DepthColours, depth_name: str = "depth") -> dict:
     """The PNGs (OpenCV BGR order) of one frame's finite predictions, by file suffix:
-    rgb, hsv (8-bit), `depth_name` (16-bit, depth x 256) and `depth_name`_color."""
+    rgb, hsv (8-bit), `depth_name` (16-bit, depth x 256) and `depth_name`_color (with its
+    colour bar, `colours`)."""
     pngs = {}
     if "rgb" in images:
         # reversed for OpenCV, so that the files hold R, G, B and H, S, V in channel order
         pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])[..., ::-1]
     if "depth" in images:
         pngs[depth_name] = depth_png(images["depth"])
-        pngs[f"{depth_name}_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
+        pngs[f"{depth_name}_color"] = colours.image(images["depth"])[..., ::-1]
     return pngs
 
 
@@ -145,14 +147,18 @@ def depth_png(depth: np.ndarray) -> np.ndarray:
     return np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)
 
 
-def video_panels(raw: np.ndarray, images: dict, bits: int, max_depth: float) -> np.ndarray:
-    """One video frame (H, k*W, 3) uint8 RGB: raw tone-mapped | pseudo-RGB (| coloured depth)."""
+def video_panels(raw: np.ndarray, images: dict, bits: int, colours: DepthColours) -> np.ndarray:
+    """One video frame (H, k*W, 3) uint8 RGB: raw tone-mapped | pseudo-RGB (| coloured depth,
+    its colour bar under the panels)."""
     panels = [display_raw(raw, bits)]
     if "rgb" in images:
         panels.append(_to8(images["rgb"]))
-    if "depth" in images:
-        panels.append(colorize_depth(images["depth"], max_depth))
-    return np.concatenate(panels, axis=1)
+    if "depth" not in images:
+        return np.concatenate(panels, axis=1)
+    depth = colours.image(images["depth"])
+    height = raw.shape[0]
+    panels = [np.pad(p, ((0, depth.shape[0] - height), (0, 0), (0, 0))) for p in panels]
+    return np.concatenate(panels + [depth], axis=1)
 
 
 # --------------------------------------------------------------------------- batching
@@ -243,7 +249,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                   pattern: str | None = None, strict: bool = False,
                   batch_size: int | None = None, video: bool = False,
                   depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
-                  progress: bool = False, intrinsics: str | None = None) -> list[str]:
+                  progress: bool = False, intrinsics: str | None = None,
+                  depth_range: str | None = None, cmap: str = "turbo") -> list[str]:
     """Runs a trained model on raw frames and writes its outputs (see the module docstring).
 
     Args:
@@ -263,6 +270,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
       intrinsics: PNG mode: also write NAME.ply, the depth as a point cloud (one point per
         pixel with depth > 0, coloured by the pseudo-RGB image), back-projected with these
         camera intrinsics (`pointcloud.parse_intrinsics`: fx,fy,cx,cy or a calibration file).
+      depth_range, cmap: how the coloured depth is drawn (`depth_colours.depth_colours`: None,
+        'auto' or 'MIN:MAX'; a matplotlib colour map), with a colour bar under it.
     Returns:
       the written paths. All inputs are read (and checked) before anything is written.
     Raises:
@@ -292,6 +301,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         if video or model["depth"] is None:
             raise RunError("--pointcloud: per-frame point clouds of a depth model (not with "
                            "--video or a Stage I model)")
+    colours = depth_colours(depth_range, cfg.data.max_depth, not cfg.depth.metric, cmap)
     trained_bits = resolved_raw_bits(cfg)
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:
@@ -323,14 +333,13 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         if video:
             for sequence in found:
                 _predict_video(predictor, sequence, out_dir, batch_size, fps, depth_png_frames,
-                               writers, bar)
+                               writers, bar, colours)
         else:
             files = [f for sequence in found for f in sequence.files]
             sizes = batch_sizes(found, batch_size)
 
             def emit(frame: Frame, images: dict) -> None:
-                for kind, image in output_pngs(images, cfg.data.max_depth,
-                                               depth_suffix(cfg)).items():
+                for kind, image in output_pngs(images, colours, depth_suffix(cfg)).items():
                     writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
                 if camera is not None:
                     from irdepth_jax.pointcloud import point_cloud_ply
@@ -387,17 +396,16 @@ def _check_sequences(found: Sequence[ThermalInput]) -> None:
 
 def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
                    batch_size: int, fps: float, with_depth_png: bool, writers: _Writers,
-                   bar) -> None:
+                   bar, colours: DepthColours) -> None:
     """Writes the MP4 of one sequence (and its depth PNGs when asked), frames in order."""
     from irdepth_jax.video import VideoWriter
 
     target = os.path.join(out_dir, video_name(sequence))
     sizes = batch_sizes([sequence], batch_size)
-    max_depth = predictor.cfg.data.max_depth
     video = VideoWriter(target, fps)
 
     def emit(frame: Frame, images: dict) -> None:
-        video.write(video_panels(frame.raw, images, predictor.bits, max_depth))
+        video.write(video_panels(frame.raw, images, predictor.bits, colours))
         if with_depth_png and "depth" in images:
             writers.submit(os.path.join(out_dir, f"{frame.name}_{depth_suffix(predictor.cfg)}.png"),
                            depth_png(images["depth"]))

@@ -15,6 +15,7 @@ from PIL import Image
 from irdepth_jax import cli
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.synthetic import render_scene
+from irdepth_jax.depth_colours import BAR_HEIGHT, LABEL_HEIGHT
 from irdepth_jax.fileio import write_png
 from irdepth_jax.models.pipeline import run_pipeline
 from irdepth_jax.train.variables import init_unet, random_depth, save_model
@@ -181,6 +182,31 @@ def test_pointcloud_one_point_per_valid_pixel(model, frame, tmp_path, capsys):
         assert np.abs(colours / 255 - rgb[valid]).max() <= 0.5 / 255 + 1e-6
     for argv, message in ((["--pointcloud"], "--pointcloud needs --intrinsics"),
                           (["--pointcloud", "--intrinsics", "1,2,3"], "expected fx,fy,cx,cy")):
+        code, _, err = run(["predict", "--checkpoint", work, "--out", tmp_path / "bad", *argv,
+                            path], capsys)
+        assert code == 2 and message in err, err
+
+
+def test_coloured_depth_has_a_colour_bar(model, frame, tmp_path, capsys):
+    from matplotlib import colormaps
+
+    work, unet, depth = model
+    raw, path = frame
+    code, _, err = run(["predict", "--checkpoint", work, "--out", tmp_path, "--depth-range",
+                        "0:40", "--cmap", "viridis", path], capsys)
+    assert code == 0, err
+    with Image.open(tmp_path / "scene_depth_color.png") as image:
+        stored = np.asarray(image)
+    assert stored.shape == (H + BAR_HEIGHT + LABEL_HEIGHT, W, 3)
+    want = np.asarray(run_pipeline(unet, depth, raw[None], CFG)["depth"])[0]
+    viridis = (colormaps["viridis"](1 - np.clip(want / 40, 0, 1))[..., :3] * 255).astype(np.uint8)
+    assert np.abs(stored[:H].astype(int) - viridis).max() <= 1
+    bar = stored[H:H + BAR_HEIGHT].astype(int)
+    near, far = (np.asarray(colormaps["viridis"](x)[:3]) * 255 for x in (1.0, 0.0))
+    assert np.abs(bar[:, 0] - near).max() <= 2 and np.abs(bar[:, -1] - far).max() <= 2
+    assert stored[H + BAR_HEIGHT:].max() == 255  # the labels are drawn
+    for argv, message in ((["--depth-range", "5:1"], "--depth-range 5:1: expected auto or MIN:MAX"),
+                          (["--cmap", "nope"], "--cmap nope: not a matplotlib colour map")):
         code, _, err = run(["predict", "--checkpoint", work, "--out", tmp_path / "bad", *argv,
                             path], capsys)
         assert code == 2 and message in err, err
