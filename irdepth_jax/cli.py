@@ -21,6 +21,7 @@ import warnings
 
 from irdepth_jax.cli_commands import (
     CliError,
+    check_usage,
     cmd_eval,
     cmd_export,
     cmd_predict,
@@ -112,8 +113,8 @@ def _add_synth(sub) -> None:
                                    "LiDAR-like depth, labels) into a folder dataset.")
     p.add_argument("--out", required=True, help="dataset directory (absent or empty)")
     p.add_argument("--n", type=int, default=96, help="number of frames (default 96)")
-    p.add_argument("--labeled", type=int, default=48,
-                   help="frames with segmentation labels (default 48)")
+    p.add_argument("--labeled", type=int, default=None,
+                   help="frames with segmentation labels (default: half of --n)")
     p.add_argument("--size", type=_parse_size, default=(64, 80), metavar="HxW",
                    help="frame size, e.g. 256x320 (default 64x80)")
     p.add_argument("--seed", type=int, default=0, help="dataset seed (default 0)")
@@ -182,6 +183,8 @@ def _add_train(sub) -> None:
 
 def _add_eval(sub) -> None:
     """The `irdepth eval` sub-command."""
+    from irdepth_jax.config import MS2_DEPTH_LABELS
+
     p = sub.add_parser("eval", help="metric tables of a trained run (Markdown + JSON)",
                        description="Evaluate a run on a split: depth d1 d2 d3 AbsRel SqRel RMSE "
                                    "RMSE-log log10 SiLog (Stage II) and PSNR SSIM entropy mIoU "
@@ -198,10 +201,16 @@ def _add_eval(sub) -> None:
                    help="evaluate frames[0:-1:N] of the split's frame list (all sequences "
                         "concatenated), as the official MS2 loader does; the MS2 test protocol "
                         "is --stride 10 (default 1: every frame)")
-    p.add_argument("--align", default="none", choices=("none", "median", "scale_shift"),
+    p.add_argument("--align", default="auto", choices=("auto", "none", "median", "scale_shift"),
                    help="per-image alignment of the predicted depth before the metrics: "
-                        "median scaling or least-squares scale and shift (default none); "
-                        "predictions are then clamped to [data.min_depth, data.max_depth]")
+                        "median scaling or least-squares scale and shift (default auto: none "
+                        "for a metric model, median for a relative one, depth.metric=false, "
+                        "which refuses none); predictions are then clamped to "
+                        "[data.min_depth, data.max_depth]")
+    p.add_argument("--gt", metavar="NAME", choices=tuple(MS2_DEPTH_LABELS),
+                   help="MS2: the depth label version to compare with: "
+                        f"{', '.join(MS2_DEPTH_LABELS)} (default depth_filtered; published "
+                        "numbers differ by about 0.04 AbsRel between them)")
     p.add_argument("--out", help="where eval_<split>.md / .json go (default: the run directory)")
     _compile_cache_flag(p)
     p.add_argument("overrides", nargs="*", metavar="KEY=VALUE",
@@ -211,14 +220,15 @@ def _add_eval(sub) -> None:
 
 def _add_predict(sub) -> None:
     """The `irdepth predict` sub-command."""
-    from irdepth_jax.predict import DEFAULT_BATCH, DEFAULT_FPS
+    from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
     p = sub.add_parser("predict", help="depth maps from raw thermal frames",
                        description="Run a trained model on raw thermal frames: 16-bit PNG, "
                                    "16-bit TIFF (multi-page: one frame per page), .npy ((H, W) "
                                    "or (N, H, W)), FLIR .fff / .seq (needs the flir extra: "
-                                   "pip install 'irdepth_jax[flir]'), or folders of them. "
+                                   "pip install 'irdepth_jax[flir]'), FLIR radiometric JPEG "
+                                   "and DJI R-JPEG (.jpg), or folders of them. "
                                    "Writes NAME_depth.png (16-bit, metres x 256), "
                                    "NAME_depth_color.png and the pseudo-RGB / HSV images "
                                    "(a stack's frames are NAME_p0000, NAME_p0001, ...). "
@@ -256,6 +266,19 @@ def _add_predict(sub) -> None:
                    help="with --video: also write each frame's 16-bit NAME_depth.png")
     p.add_argument("--fps", type=float, default=DEFAULT_FPS,
                    help=f"frame rate of the videos (default {DEFAULT_FPS:g})")
+    p.add_argument("--depth-range", metavar="auto|MIN:MAX",
+                   help="depth range of the coloured depth image and its colour bar, in metres "
+                        "(default 0:data.max_depth; auto: each frame's own, the default for a "
+                        "relative-depth model)")
+    p.add_argument("--cmap", default="turbo",
+                   help="matplotlib colour map of the coloured depth (default turbo: near red, "
+                        "far blue)")
+    p.add_argument("--pointcloud", action="store_true",
+                   help="also write NAME.ply per frame: one point per pixel with depth, "
+                        "coloured by the pseudo-RGB image (needs --intrinsics)")
+    p.add_argument("--intrinsics", metavar="fx,fy,cx,cy|FILE",
+                   help="the thermal camera's intrinsics in pixels, or a calibration file "
+                        "(MS2's calib.npy: its K_thrL; or a .npy 3x3 matrix)")
     p.add_argument("inputs", nargs="+", metavar="INPUT", help="raw frames or folders")
     _compile_cache_flag(p)
     _progress_flag(p)
@@ -332,6 +355,11 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unrecognized arguments: {' '.join(unknown)}")
     if extra:
         args.overrides = list(args.overrides) + extra
+    try:  # before JAX and the model are loaded: a mistyped path is reported at once
+        check_usage(args)
+    except CliError as err:
+        print(f"irdepth: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
     from irdepth_jax.data.folder import DatasetError
     from irdepth_jax.errors import Interrupted, RunError
     from irdepth_jax.train.checkpoint import CheckpointError

@@ -10,6 +10,8 @@ import os
 import sys
 import time
 
+from irdepth_jax.errors import counted
+
 
 class CliError(Exception):
     """A one-line user error."""
@@ -98,6 +100,35 @@ def _check_out_dir(path: str | None) -> None:
         raise CliError(f"--out {path}: exists and is not a directory")
 
 
+PATH_FLAGS = {"train": ("data", "stage1_checkpoint", "config"),
+              "eval": ("checkpoint", "workdir", "data"),
+              "predict": ("checkpoint", "inputs"),
+              "export": ("checkpoint", "sample")}
+"""The flags of each command that name paths which must exist (`check_usage`)."""
+
+
+def check_usage(args) -> None:
+    """CliError (one line naming the flag) for a path that must exist and does not, an --out
+    that is a file, or flags that do not go together: checked before anything is imported or
+    loaded, so that a usage error is reported within a second, not after JAX and the model."""
+    if args.command == "synth":
+        _check_synth(args)
+    if args.command in ("eval", "predict"):
+        _check_out_dir(args.out)
+    for flag in PATH_FLAGS.get(args.command, ()):
+        value = getattr(args, flag, None)
+        for path in value if isinstance(value, list) else [value]:
+            if path is not None and not os.path.exists(path):
+                where = "" if flag == "inputs" else f"--{flag.replace('_', '-')} "
+                raise CliError(f"{where}{path}: no such file or directory")
+    if args.command == "predict" and args.pointcloud != (args.intrinsics is not None):
+        raise CliError("--pointcloud needs --intrinsics fx,fy,cx,cy (or a calibration file)"
+                       if args.pointcloud else "--intrinsics is for --pointcloud")
+    if args.command == "predict" and args.depth_png and not args.video:
+        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
+                       "every frame's PNGs are written anyway)")
+
+
 def _run_options(args, workdir: str, resume: bool):
     from irdepth_jax.train.phase import RunOptions
 
@@ -108,6 +139,20 @@ def _run_options(args, workdir: str, resume: bool):
 
 
 # --------------------------------------------------------------------------- commands
+def _check_synth(args) -> None:
+    """CliError for `irdepth synth` counts that do not go together or an --out that holds
+    files (without --overwrite); --labeled defaults to half of --n."""
+    if args.n < 1:
+        raise CliError(f"--n {args.n}: render at least one frame")
+    if args.labeled is None:
+        args.labeled = args.n // 2
+    if not 0 <= args.labeled <= args.n:
+        raise CliError(f"--labeled {args.labeled}: choose 0 to --n ({args.n})")
+    if os.path.isdir(args.out) and os.listdir(args.out) and not args.overwrite:
+        raise CliError(f"--out {args.out}: directory exists and is not empty; choose another "
+                       "path, or pass --overwrite to replace the dataset")
+
+
 def cmd_synth(args) -> int:
     from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
@@ -115,8 +160,8 @@ def cmd_synth(args) -> int:
     path = write_synthetic_dataset(args.out, args.n, args.labeled, height, width, seed=args.seed,
                                    progress=not args.no_progress, overwrite=args.overwrite,
                                    scenes=args.scenes)
-    print(f"wrote {args.n} frames ({args.labeled} labelled, {height}x{width}, {args.scenes} scenes) "
-          f"to {path}")
+    print(f"wrote {counted(args.n, 'frame')} ({args.labeled} labelled, {height}x{width}, "
+          f"{args.scenes} scenes) to {path}")
     return 0
 
 
@@ -171,8 +216,10 @@ def cmd_train(args) -> int:
     from irdepth_jax.train.workdir_lock import claim_workdir, holds_run, last_checkpoint
 
     cfg = load_config(args.preset, args.config, _overrides(args.overrides))
-    if args.stage == "stage1" and args.stage1_checkpoint:
+    if args.stage != "stage2" and args.stage1_checkpoint:
         raise CliError("--stage1-checkpoint is for train stage2")
+    if args.stage1_checkpoint:
+        cfg = _stage1_settings(cfg, args.stage1_checkpoint, args.overrides)
     source = DataSource(args.data, args.format, strict=args.strict, raw_bits=cfg.data.raw_bits)
     start = time.perf_counter()
     # one process takes the lock (a multi-host run's processes may share the directory)
@@ -209,16 +256,31 @@ def cmd_train(args) -> int:
     return 0
 
 
+def _stage1_settings(cfg, stage1_checkpoint: str, overrides: list[str]):
+    """`cfg` with the Stage I model's settings from --stage1-checkpoint (a conflicting
+    ``key=value`` refused), and a note naming those that differ from the preset's."""
+    from irdepth_jax.config import override_keys
+    from irdepth_jax.train.variables import take_stage1_settings
+
+    cfg, taken = take_stage1_settings(stage1_checkpoint, cfg, override_keys(overrides))
+    if taken:
+        settings = " ".join(f"{key}={new}" for key, (_, new) in taken.items())
+        print(f"irdepth: note: Stage II uses the Stage I model's {settings} (from "
+              f"--stage1-checkpoint {stage1_checkpoint})", file=sys.stderr)
+    return cfg
+
+
 def cmd_eval(args) -> int:
     from irdepth_jax.evaluate import evaluate_run, nonfinite_warning
 
-    _check_out_dir(args.out)
     path = args.checkpoint or args.workdir
     result = evaluate_run(path, args.data, args.split, args.format, out_dir=args.out,
                           overrides=_overrides(args.overrides), stride=args.stride,
-                          align=None if args.align == "none" else args.align,
-                          strict=args.strict)
+                          align=args.align,
+                          strict=args.strict, gt=args.gt)
     print(result["markdown"])
+    for line in result["warnings"]:
+        print(f"irdepth: WARNING: {line}", file=sys.stderr)
     warning = nonfinite_warning(result)
     if warning:
         print(f"irdepth: WARNING: {warning}", file=sys.stderr)
@@ -230,18 +292,15 @@ def cmd_eval(args) -> int:
 def cmd_predict(args) -> int:
     from irdepth_jax.predict import predict_files
 
-    _check_out_dir(args.out)
-    if args.depth_png and not args.video:
-        raise CliError("--depth-png adds per-frame depth PNGs to --video (without --video "
-                       "every frame's PNGs are written anyway)")
     written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
                             raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
                             batch_size=args.batch_size, video=args.video,
                             depth_png_frames=args.depth_png, fps=args.fps,
-                            progress=not args.no_progress)
+                            progress=not args.no_progress, intrinsics=args.intrinsics,
+                            depth_range=args.depth_range, cmap=args.cmap)
     videos = sum(f.endswith(".mp4") for f in written)
-    what = f"{videos} videos and {len(written) - videos} files" if args.video else \
-        f"{len(written)} files"
+    what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
+            if args.video else counted(len(written), "file"))
     print(f"wrote {what} to {args.out}")
     return 0
 
@@ -254,8 +313,9 @@ def cmd_export(args) -> int:
     meta = export_model(args.checkpoint, args.format, args.height, args.width, args.batch,
                         args.out, sample=args.sample)
     check = meta["check"]
-    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on {check['frames']} "
-          f"{'synthetic' if args.sample is None else 'sample'} frames (tolerance "
+    kind = "synthetic frame" if args.sample is None else "sample frame"
+    print(f"max |{args.format} - JAX| = {check['max_abs_diff']:.3g} m on "
+          f"{counted(check['frames'], kind)} (tolerance "
           f"{check['tolerance']:.3g} m)")
     print(f"wrote {args.out} and {metadata_path(args.out)}")
     return 0
@@ -275,4 +335,24 @@ def cmd_quickstart(args) -> int:
     print("\n".join(improvement_lines(result)))
     print(f"quickstart finished in {result['seconds']:.0f} s; data, runs and tables "
           f"({work}/stage2/eval_test.md) are in {work}")
+    print("\n".join(quickstart_next_steps(work, result["config"])))
     return 0
+
+
+def quickstart_next_steps(work: str, cfg) -> list[str]:
+    """What the quickstart made, and the commands that train a model for real frames."""
+    d = cfg.data
+    return [
+        f"What it made: {work}/data ({d.num_frames} synthetic frames of {d.height}x{d.width}), "
+        f"{work}/stage1 and {work}/stage2: a {cfg.name} model trained on synthetic frames, its "
+        "depth network from random weights. It shows the pipeline runs; its depth on real "
+        "camera frames means nothing (predict and eval warn so).",
+        "Next, a model for real frames: MS2 (or a folder dataset, README 'Data: our folder "
+        "format': --data FOLDER) and the released Depth Anything V2 weights "
+        "(depth_anything_v2_metric_vkitti_vits.pth):",
+        "  irdepth train stage1 --preset paper --data MS2_ROOT --workdir runs/s1 "
+        "stage1.seg_labels=synthetic",
+        "  irdepth train stage2 --preset paper --data MS2_ROOT --workdir runs/s2 "
+        "--stage1-checkpoint runs/s1 depth.checkpoint=depth_anything_v2_metric_vkitti_vits.pth",
+        "  irdepth eval --workdir runs/s2 --data MS2_ROOT --split test_day --stride 10",
+        "  irdepth predict --checkpoint runs/s2 --out preds MS2_ROOT/sync_data/SEQ/thr/img_left"]

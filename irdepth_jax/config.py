@@ -31,6 +31,12 @@ from typing import Any
 
 CLASS_NAMES: tuple[str, ...] = ("sky", "building", "car", "bicycle", "road", "tree")
 """Semantic classes of the paper, in label order (label 255 = unlabelled)."""
+MS2_DEPTH_LABELS: dict[str, str] = {
+    "depth_filtered": "proj_depth", "depth": "proj_depth", "depth_multi": "proj_depth",
+    "depth_gt": "sync_data", "depth_refl_gt": "sync_data"}
+"""MS2's depth label versions (<folder>/<seq>/thr/<name>/, uint16 metres x 256) by name, with
+the folder holding them (`data.ms2`; `irdepth eval --gt`); published numbers differ by about
+0.04 AbsRel between versions. 'depth_filtered' is the default (the official loader's)."""
 IGNORE_LABEL = 255
 SKY_CLASS = 0
 
@@ -321,6 +327,12 @@ def apply_overrides(cfg: Config, overrides: list[str] | tuple[str, ...]) -> Conf
     return cfg
 
 
+def override_keys(overrides: list[str] | tuple[str, ...]) -> set[str]:
+    """The dotted keys that `key=value` overrides set (old names as their new ones, silently)."""
+    return {RENAMED_KEYS.get(k.strip(), k.strip())
+            for k, _, _ in (item.partition("=") for item in overrides)}
+
+
 def _get_field(obj: Any, name: str, key: str) -> Any:
     names = {f.name for f in dataclasses.fields(obj)}
     if name not in names:
@@ -376,6 +388,33 @@ def from_dict(d: dict) -> Config:
         else:
             raise ValueError(f"unknown config key {key!r}")
     return Config(**kwargs)
+
+
+STAGE1_MODEL_KEYS: tuple[str, ...] = (
+    *(f"unet.{f.name}" for f in dataclasses.fields(UNetConfig)), "data.raw_bits")
+"""The dotted keys that define a Stage I model: its variables' shapes (widths, classes, RGG) and
+what it computes from the raw counts (normalisation, bit depth). A Stage II run takes them from
+its Stage I checkpoint."""
+
+
+def get_key(cfg: Config, key: str) -> Any:
+    """The value of a dotted config key (``section.field`` or a top-level field)."""
+    value: Any = cfg
+    for part in key.split("."):
+        value = getattr(value, part)
+    return value
+
+
+def with_keys(cfg: Config, values: dict[str, Any]) -> Config:
+    """`cfg` with the dotted keys of `values` (``section.field`` or top-level) set to them."""
+    for key, value in values.items():
+        section, _, name = key.rpartition(".")
+        if not section:
+            cfg = dataclasses.replace(cfg, **{name: value})
+        else:
+            cfg = dataclasses.replace(cfg, **{section: dataclasses.replace(
+                getattr(cfg, section), **{name: value})})
+    return cfg
 
 
 def resolved_raw_bits(cfg: Config) -> int:

@@ -16,18 +16,18 @@ from typing import Any
 import numpy as np
 
 from irdepth_jax.data.source import DataSource
-from irdepth_jax.errors import RunError
+from irdepth_jax.errors import RunError, counted
 from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import make_dirs, write_bytes
 from irdepth_jax.metrics import DEPTH_METRICS
 from irdepth_jax.train.parallel import DataParallel
-from irdepth_jax.train.variables import load_model
+from irdepth_jax.train.variables import describe_trained_on, input_warnings, load_model
 
 
 def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                  out_dir: str | None = None, overrides: Sequence[str] = (),
-                 dp: DataParallel | None = None, stride: int = 1, align: str | None = None,
-                 strict: bool = False) -> dict:
+                 dp: DataParallel | None = None, stride: int = 1, align: str | None = "auto",
+                 strict: bool = False, gt: str | None = None) -> dict:
     """Evaluates a run on a split and writes ``eval_<split>.md`` and ``.json``.
 
     Args:
@@ -38,27 +38,46 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
       stride: 1: every frame; N > 1: frames[0:-1:N] of the split's frame list (all sequences
         concatenated), as the official MS2 loader subsamples its test sets (N = 10).
       align: per-image alignment of the predicted depth before the metrics: None, 'median'
-        or 'scale_shift'.
+        or 'scale_shift'; 'auto': median for a relative-depth model (depth.metric=false),
+        none for a metric one (`depth_alignment`).
       strict: MS2: a listed sequence that is not on disk is an error (default: skipped with a
         warning).
+      gt: MS2: the depth label version the metrics compare with (`data.ms2.DEPTH_LABELS`;
+        None: depth_filtered); recorded as protocol.ground_truth.
     Returns:
-      {'stage', 'split', 'protocol': {'stride', 'frames', 'align', 'clamp': [min, max] m},
-      'stage1': table or None, 'stage2': table or None, 'markdown'}.
+      {'stage', 'split', 'trained_on' (`read_trained_on`), 'warnings' (the ways the split's
+      frames differ in kind from the training frames: `input_warnings`), 'protocol': {'stride',
+      'frames', 'align', 'clamp': [min, max] m,
+      'depth': 'metric' | 'relative', 'reconstruction': what PSNR / SSIM compare with}, 'stage1':
+      table or None (no psnr / ssim for MS2, which has no camera 8-bit image), 'stage2': table
+      or None, 'markdown'}.
     """
     cfg, stage, model = load_model(path, overrides)
-    source = DataSource(data, fmt, strict=strict, raw_bits=cfg.data.raw_bits)
+    align = depth_alignment(path, cfg, model["depth"] is not None, align)
+    source = DataSource(data, fmt, strict=strict, raw_bits=cfg.data.raw_bits, depth_label=gt)
     dataset, indices = source.frames(split, stride=stride)
     if len(indices) == 0:
         raise RunError(f"--data {data}: split {split!r} has no frames")
+    described = source.describe(split)
     dp = dp or DataParallel("single")
     result: dict[str, Any] = {
         "stage": stage, "split": split, "stage1": None, "stage2": None,
         "protocol": {"stride": stride, "frames": len(indices), "align": align or "none",
-                     "clamp": [cfg.data.min_depth, cfg.data.max_depth]},
-        "segmentation_branch": model["segmentation"]}
+                     "clamp": [cfg.data.min_depth, cfg.data.max_depth],
+                     "depth": "metric" if cfg.depth.metric else "relative",
+                     "ground_truth": (f"MS2 {gt or 'depth_filtered'}" if source.format == "ms2"
+                                      else "the folder dataset's depth/"),
+                     "reconstruction": (None if source.format == "ms2"
+                                        else "the dataset's 8-bit camera image (ir8)")},
+        "segmentation_branch": model["segmentation"], "trained_on": model["trained_on"],
+        "warnings": input_warnings(model["trained_on"], {tuple(described["frame_size"])},
+                                   described["kind"])}
     if model["unet"] is not None:
         result["stage1"] = evaluate_stage1(cfg, model["unet"], dataset, indices, dp,
                                            seg_frames=source.seg_frames(split))
+        if source.format == "ms2":  # ir8 is our own tone map of the raw frame: no ground truth
+            result["stage1"] = {group: {k: v for k, v in row.items() if k not in ("psnr", "ssim")}
+                                for group, row in result["stage1"].items()}
     if model["depth"] is not None:
         result["stage2"] = evaluate_stage2(cfg, model["unet"], model["depth"], dataset, indices,
                                            dp, align=align)
@@ -69,6 +88,20 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
     table = {k: v for k, v in result.items() if k != "markdown"}
     write_bytes(os.path.join(out_dir, f"eval_{split}.json"), json.dumps(table, indent=2).encode())
     return result
+
+
+def depth_alignment(path: str, cfg, has_depth: bool, align: str | None) -> str | None:
+    """The per-image alignment eval applies (None, 'median' or 'scale_shift'): `align`, where
+    'auto' is median for a relative-depth model (depth.metric=false: depth up to an unknown
+    scale) and none for a metric one. RunError for a relative model without an alignment (its
+    metrics in metres would mean nothing)."""
+    relative = has_depth and not cfg.depth.metric
+    if align == "auto":
+        return "median" if relative else None
+    if relative and align in (None, "none"):
+        raise RunError(f"{path}: a relative-depth model (depth.metric=false) predicts depth up "
+                       "to an unknown scale; evaluate it with --align median or scale_shift")
+    return None if align == "none" else align
 
 
 def _table(title: str, table: dict[str, dict[str, float]], columns: Sequence[str]) -> str:
@@ -99,9 +132,17 @@ def format_tables(result: dict) -> str:
     frames = ("every frame" if protocol["stride"] == 1
               else f"frames[0:-1:{protocol['stride']}]")
     low, high = protocol["clamp"]
-    parts.append(f"Protocol: {protocol['frames']} images ({frames} of the split); depth: "
-                 f"alignment {protocol['align']}, predictions clamped to [{low:g}, {high:g}] m "
-                 "(the valid ground-truth range).\n")
+    relative = (" (a relative-depth model: depth up to an unknown scale, aligned per image)"
+                if protocol.get("depth") == "relative" else "")
+    parts.append(f"Protocol: {counted(protocol['frames'], 'image')} ({frames} of the split); depth: "
+                 f"alignment {protocol['align']}{relative}, predictions clamped to [{low:g}, "
+                 f"{high:g}] m (the valid ground-truth range)"
+                 + (f"; ground truth: {protocol['ground_truth']}" if "ground_truth" in protocol
+                    else "") + ".\n")
+    if "trained_on" in result:
+        parts.append(f"Model: {describe_trained_on(result['trained_on'])}.\n")
+    for line in result.get("warnings", []):
+        parts.append(f"**Warning: {line}.**\n")
     warning = nonfinite_warning(result)
     if warning:
         parts.append(f"**Warning: {warning}.**\n")
@@ -114,7 +155,12 @@ def format_tables(result: dict) -> str:
     if result.get("stage2") is not None:
         nonfinite = ("nonfinite_pixels", "nonfinite_images") if warning else ()
         parts.append(_table("Depth (Stage II)", result["stage2"], DEPTH_METRICS + nonfinite))
-    if result.get("stage1") is not None:
+    if result.get("stage1") is not None and protocol.get("reconstruction", "ir8") is None:
+        parts.append(_table("Segmentation and reconstruction entropy (Stage I)", result["stage1"],
+                            ("entropy", "miou")))
+        parts.append("PSNR / SSIM left out: this dataset has no 8-bit camera image to compare "
+                     "the reconstruction with (only this tool's own tone map of the raw frame).\n")
+    elif result.get("stage1") is not None:
         parts.append(_table("Reconstruction and segmentation (Stage I)", result["stage1"],
                             ("psnr", "ssim", "entropy", "miou")))
     return "\n".join(parts)

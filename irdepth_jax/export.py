@@ -165,10 +165,39 @@ def onnx_bytes(fn: Callable, shape: Sequence[int]) -> bytes:
     finally:
         for log, level in zip(quiet, levels):
             log.setLevel(level)
+    drop_unused_initializers(model.graph)
     if model.ByteSize() > ONNX_MAX_BYTES:
         raise ExportError(f"--format onnx: the model is {model.ByteSize() / 2**30:.1f} GB, over "
                           "the 2 GB of one ONNX file; use --format stablehlo")
     return model.SerializeToString()
+
+
+def _subgraphs(graph) -> list:
+    """The graphs nested in `graph`'s nodes (the branches of If, the bodies of Loop / Scan)."""
+    return [g for node in graph.node for attr in node.attribute
+            for g in ([attr.g] if attr.HasField("g") else list(attr.graphs))]
+
+
+def _names_read(graph) -> set[str]:
+    """Every value name `graph` and the graphs nested in it read (node inputs, graph outputs;
+    a nested graph may read its enclosing graphs' values)."""
+    names = {name for node in graph.node for name in node.input}
+    names |= {out.name for out in graph.output}
+    for sub in _subgraphs(graph):
+        names |= _names_read(sub)
+    return names
+
+
+def drop_unused_initializers(graph) -> None:
+    """Removes, in place, the initializers no node reads from an ONNX graph and its nested
+    graphs (jax2onnx leaves constants of the branches of `lax.cond` it simplified): onnxruntime
+    would print a "Removing initializer" warning for each when it opens the file."""
+    read = _names_read(graph)
+    unused = [init for init in graph.initializer if init.name not in read]
+    for init in unused:
+        graph.initializer.remove(init)
+    for sub in _subgraphs(graph):
+        drop_unused_initializers(sub)
 
 
 def _one_line(err: Exception) -> str:

@@ -6,9 +6,10 @@ thread pool while the next batch computes, so decoding, the model and encoding o
 frame size runs at one batch size (the last batch of a size is padded with its last frame), so
 it compiles once.
 
-Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256),
+Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256; a relative-depth model
+writes ``NAME_depth_relative.png``, depth x 256 up to an unknown scale),
 ``NAME_depth_color.png`` and, for models with a UNet, ``NAME_rgb.png`` (pseudo-RGB) and
-``NAME_hsv.png`` (H, S, V as 8-bit channels). Video mode (``--video``): one ``NAME.mp4`` per
+``NAME_hsv.png`` (H, S, V as its 8-bit R, G, B channels). Video mode (``--video``): one ``NAME.mp4`` per
 sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
 raw tone-mapped | pseudo-RGB of the HSV image | coloured depth side by side, and with
 ``--depth-png`` the 16-bit depth PNGs of its frames too.
@@ -27,13 +28,10 @@ import numpy as np
 from irdepth_jax.config import Config
 from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
 from irdepth_jax.data.loader import prefetch
+from irdepth_jax.depth_colours import DepthColours, depth_colours
 from irdepth_jax.errors import RunError
-from irdepth_jax.fileio import make_dirs, write_png
-
-DEFAULT_BATCH = {"cpu": 1, "gpu": 8}
-"""Frames per model call by backend. On a 2-core CPU batches are slower, not faster (`paper` UNet
-+ ViT-S at 512x640: 0.38 frames/s at batch 1, 0.31 at batch 8, `experiments/bench_predict.py`:
-the activations of 8 frames no longer fit the caches); a GPU needs batches to fill it."""
+from irdepth_jax.fileio import make_dirs, write_bytes, write_png
+from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
 def default_batch_size() -> int:
@@ -41,8 +39,6 @@ def default_batch_size() -> int:
     import jax
 
     return DEFAULT_BATCH.get(jax.default_backend(), DEFAULT_BATCH["gpu"])
-DEFAULT_FPS = 15.0
-"""Frame rate of the depth videos (MS2's thermal camera records at 15 Hz)."""
 READ_AHEAD = 2
 """Batches decoded ahead of the model."""
 WRITERS = 2
@@ -122,15 +118,23 @@ def _checked(file: str, name: str, images: dict) -> dict:
     return images
 
 
-def output_pngs(images: dict, max_depth: float) -> dict:
+def depth_suffix(cfg: Config) -> str:
+    """The file suffix of a model's depth output: 'depth' (metres) for a metric model,
+    'depth_relative' for a relative one (depth.metric=false: depth up to an unknown scale)."""
+    return "depth" if cfg.depth.metric else "depth_relative"
+
+
+def output_pngs(images: dict, colours: DepthColours, depth_name: str = "depth") -> dict:
     """The PNGs (OpenCV BGR order) of one frame's finite predictions, by file suffix:
-    rgb, hsv (8-bit), depth (16-bit, metres x 256) and depth_color."""
+    rgb, hsv (8-bit), `depth_name` (16-bit, depth x 256) and `depth_name`_color (with its
+    colour bar, `colours`)."""
     pngs = {}
     if "rgb" in images:
-        pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])
+        # reversed for OpenCV, so that the files hold R, G, B and H, S, V in channel order
+        pngs["rgb"], pngs["hsv"] = _to8(images["rgb"])[..., ::-1], _to8(images["hsv"])[..., ::-1]
     if "depth" in images:
-        pngs["depth"] = depth_png(images["depth"])
-        pngs["depth_color"] = colorize_depth(images["depth"], max_depth)[..., ::-1]
+        pngs[depth_name] = depth_png(images["depth"])
+        pngs[f"{depth_name}_color"] = colours.image(images["depth"])[..., ::-1]
     return pngs
 
 
@@ -143,14 +147,18 @@ def depth_png(depth: np.ndarray) -> np.ndarray:
     return np.clip(np.round(depth * 256.0), 0, 65535).astype(np.uint16)
 
 
-def video_panels(raw: np.ndarray, images: dict, bits: int, max_depth: float) -> np.ndarray:
-    """One video frame (H, k*W, 3) uint8 RGB: raw tone-mapped | pseudo-RGB (| coloured depth)."""
+def video_panels(raw: np.ndarray, images: dict, bits: int, colours: DepthColours) -> np.ndarray:
+    """One video frame (H, k*W, 3) uint8 RGB: raw tone-mapped | pseudo-RGB (| coloured depth,
+    its colour bar under the panels)."""
     panels = [display_raw(raw, bits)]
     if "rgb" in images:
         panels.append(_to8(images["rgb"]))
-    if "depth" in images:
-        panels.append(colorize_depth(images["depth"], max_depth))
-    return np.concatenate(panels, axis=1)
+    if "depth" not in images:
+        return np.concatenate(panels, axis=1)
+    depth = colours.image(images["depth"])
+    height = raw.shape[0]
+    panels = [np.pad(p, ((0, depth.shape[0] - height), (0, 0), (0, 0))) for p in panels]
+    return np.concatenate(panels + [depth], axis=1)
 
 
 # --------------------------------------------------------------------------- batching
@@ -220,6 +228,10 @@ class _Writers:
         self.futures.append((path, self.pool.submit(write_png, path, image)))
         self.check(block=False)
 
+    def submit_bytes(self, path: str, data: bytes) -> None:
+        self.futures.append((path, self.pool.submit(write_bytes, path, data)))
+        self.check(block=False)
+
     def check(self, block: bool = True) -> None:
         while self.futures and (block or self.futures[0][1].done()):
             path, future = self.futures.pop(0)
@@ -237,7 +249,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                   pattern: str | None = None, strict: bool = False,
                   batch_size: int | None = None, video: bool = False,
                   depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
-                  progress: bool = False) -> list[str]:
+                  progress: bool = False, intrinsics: str | None = None,
+                  depth_range: str | None = None, cmap: str = "turbo") -> list[str]:
     """Runs a trained model on raw frames and writes its outputs (see the module docstring).
 
     Args:
@@ -254,6 +267,11 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
       video: one MP4 per input sequence instead of per-frame images; `depth_png_frames`
         adds the 16-bit depth PNGs of its frames; `fps` is its frame rate.
       progress: a progress bar (frames/s) on stderr.
+      intrinsics: PNG mode: also write NAME.ply, the depth as a point cloud (one point per
+        pixel with depth > 0, coloured by the pseudo-RGB image), back-projected with these
+        camera intrinsics (`pointcloud.parse_intrinsics`: fx,fy,cx,cy or a calibration file).
+      depth_range, cmap: how the coloured depth is drawn (`depth_colours.depth_colours`: None,
+        'auto' or 'MIN:MAX'; a matplotlib colour map), with a colour bar under it.
     Returns:
       the written paths. All inputs are read (and checked) before anything is written.
     Raises:
@@ -275,6 +293,15 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     if model["depth"] is not None and cfg.stage2.preprocessing == "blank":
         raise RunError(f"{path}: a control model (stage2.preprocessing=blank) that never sees "
                        "the image; it predicts the same depth for every frame")
+    camera = None
+    if intrinsics is not None:
+        from irdepth_jax.pointcloud import parse_intrinsics
+
+        camera = parse_intrinsics(intrinsics)
+        if video or model["depth"] is None:
+            raise RunError("--pointcloud: per-frame point clouds of a depth model (not with "
+                           "--video or a Stage I model)")
+    colours = depth_colours(depth_range, cfg.data.max_depth, not cfg.depth.metric, cmap)
     trained_bits = resolved_raw_bits(cfg)
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:
@@ -288,6 +315,13 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
                   f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
                   "a scale it did not see in training", file=sys.stderr)
+    _say_what_it_was_trained_on(path, model["trained_on"],
+                                {shape for sequence in found for shape, _ in sequence.shapes})
+    if model["depth"] is not None and not cfg.depth.metric:
+        print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
+              "NAME_depth_relative.png holds depth x 256 up to an unknown scale, not metres; "
+              "scale it to metres with known distances (irdepth eval --align median does it "
+              "per image against ground truth)", file=sys.stderr)
     make_dirs(out_dir)
     predictor = Predictor(cfg, model, bits)
     from tqdm.auto import tqdm
@@ -299,14 +333,20 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         if video:
             for sequence in found:
                 _predict_video(predictor, sequence, out_dir, batch_size, fps, depth_png_frames,
-                               writers, bar)
+                               writers, bar, colours)
         else:
             files = [f for sequence in found for f in sequence.files]
             sizes = batch_sizes(found, batch_size)
 
             def emit(frame: Frame, images: dict) -> None:
-                for kind, image in output_pngs(images, cfg.data.max_depth).items():
+                for kind, image in output_pngs(images, colours, depth_suffix(cfg)).items():
                     writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
+                if camera is not None:
+                    from irdepth_jax.pointcloud import point_cloud_ply
+
+                    colors = _to8(images["rgb"]) if "rgb" in images else display_raw(frame.raw, bits)
+                    writers.submit_bytes(os.path.join(out_dir, f"{frame.name}.ply"),
+                                         point_cloud_ply(images["depth"], colors, camera))
                 bar.update(1)
 
             _Pipelined(predictor, emit).run(
@@ -316,6 +356,16 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         writers.close()
         bar.close()
     return writers.written
+
+
+def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
+    """Prints (stderr) what the model was trained on, and a warning for each way the inputs
+    differ from it in kind (`train.variables.input_warnings`)."""
+    from irdepth_jax.train.variables import describe_trained_on, input_warnings
+
+    print(f"irdepth: model {path}: {describe_trained_on(trained_on)}", file=sys.stderr)
+    for line in input_warnings(trained_on, shapes):
+        print(f"irdepth: WARNING: {line}", file=sys.stderr)
 
 
 def video_name(sequence: ThermalInput) -> str:
@@ -346,19 +396,18 @@ def _check_sequences(found: Sequence[ThermalInput]) -> None:
 
 def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
                    batch_size: int, fps: float, with_depth_png: bool, writers: _Writers,
-                   bar) -> None:
+                   bar, colours: DepthColours) -> None:
     """Writes the MP4 of one sequence (and its depth PNGs when asked), frames in order."""
     from irdepth_jax.video import VideoWriter
 
     target = os.path.join(out_dir, video_name(sequence))
     sizes = batch_sizes([sequence], batch_size)
-    max_depth = predictor.cfg.data.max_depth
     video = VideoWriter(target, fps)
 
     def emit(frame: Frame, images: dict) -> None:
-        video.write(video_panels(frame.raw, images, predictor.bits, max_depth))
+        video.write(video_panels(frame.raw, images, predictor.bits, colours))
         if with_depth_png and "depth" in images:
-            writers.submit(os.path.join(out_dir, f"{frame.name}_depth.png"),
+            writers.submit(os.path.join(out_dir, f"{frame.name}_{depth_suffix(predictor.cfg)}.png"),
                            depth_png(images["depth"]))
         bar.update(1)
 

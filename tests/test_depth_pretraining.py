@@ -82,7 +82,7 @@ def test_train_depth_refuses_data_without_visible_images_and_thermal_settings(tm
     assert "have no visible image" in err and doc["frames"][k]["id"] in err
     assert not (tmp_path / "w" / "checkpoints").exists()
     for extra, message in ((["stage2.preprocessing=he"], "train depth trains on the visible images"),
-                           (["--stage1-checkpoint", str(tmp_path)], "without a Stage I model")):
+                           (["--stage1-checkpoint", str(tmp_path)], "--stage1-checkpoint is for train stage2")):
         assert cli.main(["train", "depth", "--data", str(synthetic_data), "--workdir",
                          str(tmp_path / "x"), "--steps", "1", *QUICK, *extra]) == 2
         assert message in capsys.readouterr().err

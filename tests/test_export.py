@@ -69,6 +69,19 @@ def max_difference(exported, model, raw):
     return float(np.abs(got - want).max())
 
 
+def test_onnx_opens_without_warnings(exported, capfd):
+    """onnxruntime (default log level) opens the ONNX file without a "Removing initializer"
+    warning: no (sub)graph keeps a constant no node reads."""
+    fmt, path, _ = exported
+    if fmt != "onnx":
+        pytest.skip("an ONNX file's graph")
+    import onnxruntime
+
+    capfd.readouterr()
+    onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    assert "Removing initializer" not in capfd.readouterr().err
+
+
 def test_synthetic_frames(exported, model):
     cfg, _ = model
     _, height, width = SHAPE

@@ -16,7 +16,8 @@ LAYERS = [
                             "train.workdir_lock", "train.runlog", "train.variables", "train.legacy_names"]),
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
-    ("runs and deployment", ["evaluate", "predict", "export", "workflow"]),
+    ("runs and deployment", ["evaluate", "predict", "predict_settings", "pointcloud",
+                             "depth_colours", "export", "workflow"]),
     ("command line", ["cli", "cli_commands", "__main__"]),
 ]
 

@@ -12,11 +12,14 @@ import tifffile
 from irdepth_jax import cli
 from irdepth_jax.config import get_config
 from irdepth_jax.data.synthetic import render_scene
+from irdepth_jax.depth_colours import BAR_HEIGHT, LABEL_HEIGHT
 from irdepth_jax.models.pipeline import run_pipeline
 from irdepth_jax.predict import depth_png
 from irdepth_jax.train.variables import init_unet, random_depth, save_model
 
 CFG = get_config("tiny")
+COLOUR_BAR = BAR_HEIGHT + LABEL_HEIGHT
+"""Rows of the colour bar under a video's panels."""
 
 
 def run(argv, capsys):
@@ -107,8 +110,8 @@ def test_video_of_synthetic_frames(model, tmp_path, capsys):
     code, stdout, err = run(["predict", "--checkpoint", work, "--out", out, "--video",
                              "--depth-png", "--fps", "10", "--batch-size", "3", folder], capsys)
     assert code == 0, err
-    assert "wrote 1 videos and 8 files" in stdout
-    assert video_info(out / "drive.mp4") == {"frames": 8, "height": height,
+    assert "wrote 1 video and 8 files" in stdout
+    assert video_info(out / "drive.mp4") == {"frames": 8, "height": height + COLOUR_BAR,
                                              "width": 3 * width, "fps": 10.0}
     assert sorted(os.listdir(out)) == [f"{k:04d}_depth.png" for k in range(8)] + ["drive.mp4"]
     result = run_pipeline(unet, depth, np.stack(raws), CFG)
@@ -117,7 +120,7 @@ def test_video_of_synthetic_frames(model, tmp_path, capsys):
         assert np.abs(read(out / f"{k:04d}_depth.png").astype(int) - want).max() <= 1
     frames = read_video(out / "drive.mp4").astype(np.float64)
     pseudo_rgb = np.asarray(result["rgb"]) * 255
-    assert np.abs(frames[:, :, width:2 * width] - pseudo_rgb).mean() < 6  # H.264, crf 18
+    assert np.abs(frames[:, :height, width:2 * width] - pseudo_rgb).mean() < 6  # H.264, crf 18
 
 
 def test_video_refuses_what_is_not_a_sequence(model, mixed_inputs, tmp_path, capsys):
@@ -144,4 +147,4 @@ def test_video_of_real_ms2_frames(model, realdata, tmp_path, capsys):
     assert code == 0, err
     assert "skipped 4 of 6 files" in err
     info = video_info(tmp_path / "v" / "left.mp4")
-    assert (info["frames"], info["height"], info["width"]) == (2, 256, 3 * 640)
+    assert (info["frames"], info["height"], info["width"]) == (2, 256 + COLOUR_BAR, 3 * 640)

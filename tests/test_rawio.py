@@ -69,7 +69,8 @@ def test_not_thermal(tmp_path, make, match):
     ("x.png", b"not an image", "not a readable PNG"),
     ("x.tif", b"not a tiff", "not a readable TIFF"),
     ("x.npy", b"not an array", "not a readable .npy"),
-    ("x.jpg", b"", "unknown raw frame type '.jpg'"),
+    ("x.jpg", b"", "x.jpg: not a JPEG file"),
+    ("x.bmp", b"", "unknown raw frame type '.bmp'"),
 ])
 def test_unreadable_files(tmp_path, name, content, match):
     (tmp_path / name).write_bytes(content)

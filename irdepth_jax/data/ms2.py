@@ -35,7 +35,7 @@ import warnings
 
 import numpy as np
 
-from irdepth_jax.config import IGNORE_LABEL
+from irdepth_jax.config import IGNORE_LABEL, MS2_DEPTH_LABELS
 from irdepth_jax.data.folder import DEPTH_SCALE, DatasetError, DatasetWarning, read_png
 from irdepth_jax.data.rawio import accepted_bits
 from irdepth_jax.imaging.raw import check_raw
@@ -44,6 +44,9 @@ LIST_FILES = {"train": "train_list.txt", "val": "val_list.txt", "test_day": "tes
               "test_night": "test_night_list.txt", "test_rainy": "test_rainy_list.txt"}
 _TEST_CONDITION = {"test_day": "day", "test_night": "night", "test_rainy": "rainy"}
 SPLITS = tuple(LIST_FILES) + ("test",)
+
+
+DEPTH_LABELS = MS2_DEPTH_LABELS
 
 
 class MissingSequencesError(DatasetError):
@@ -86,10 +89,15 @@ class MS2Dataset:
         skip it, with one `DatasetWarning` naming the missing ones, listed in `missing`).
       raw_bits: bit depth the raw counts are checked against when a frame is read: 14, 16 or
         'auto' (up to 16, until a run resolves it).
+      depth_label: which depth label version is the ground truth (`DEPTH_LABELS`).
     """
 
     def __init__(self, root, split: str, conditions: dict | None = None, strict: bool = False,
-                 raw_bits: int | str = 14):
+                 raw_bits: int | str = 14, depth_label: str = "depth_filtered"):
+        if depth_label not in DEPTH_LABELS:
+            raise ValueError(f"MS2 depth label {depth_label!r}: choose one of "
+                             f"{', '.join(DEPTH_LABELS)}")
+        self.depth_label = depth_label
         self.root = pathlib.Path(root)
         self.raw_bits = accepted_bits(raw_bits)
         if not self.root.is_dir():
@@ -118,7 +126,8 @@ class MS2Dataset:
                     continue
                 cond = _TEST_CONDITION.get(part) or known.get(seq, "unknown")
                 for img in sorted(img_dir.glob("*.png")):
-                    depth = self.root / "proj_depth" / seq / "thr" / "depth_filtered" / img.name
+                    depth = (self.root / DEPTH_LABELS[depth_label] / seq / "thr" / depth_label
+                             / img.name)
                     if not depth.is_file():
                         self.skipped += 1
                         continue
@@ -134,7 +143,8 @@ class MS2Dataset:
                 raise (MissingSequencesError if strict else DatasetError)(f"{what}: {names}")
             warnings.warn(f"{what}, skipped: {names}", DatasetWarning, stacklevel=2)
         if not self.records:
-            raise DatasetError(f"{self.root}: no thermal frames with depth in split {split!r}")
+            raise DatasetError(f"{self.root}: no thermal frames with depth in split {split!r} "
+                               f"({DEPTH_LABELS[depth_label]}/<seq>/thr/{depth_label})")
         self._max_depth: float | None = None
 
     def __len__(self) -> int:

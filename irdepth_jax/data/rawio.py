@@ -10,6 +10,8 @@ Formats, by suffix (`RAW_SUFFIXES`):
 * ``.npy``: an integer array (H, W) or a stack (N, H, W).
 * ``.fff`` / ``.seq``: FLIR raw files (one frame / a sequence of frames), through the optional
   `flirpy` package (``pip install 'irdepth_jax[flir]'``): the sensor counts, not temperatures.
+* ``.jpg`` / ``.jpeg``: FLIR radiometric JPEGs and DJI R-JPEGs (their raw counts, parsed by
+  `irdepth_jax.data.thermal_jpeg`); a JPEG without raw counts is a visible photo.
 
 A file holding one frame gives one frame named by the file stem; a stack gives frames named
 ``STEM_p0000``, ``STEM_p0001``, ... (page / frame index from 0).
@@ -30,7 +32,7 @@ import numpy as np
 
 from irdepth_jax.imaging.raw import BIT_DEPTHS, RAW_MAX, check_raw
 
-RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fff", ".seq")
+RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fff", ".seq", ".jpg", ".jpeg")
 """File suffixes `read_frames` reads (lower case; matched case-insensitively)."""
 
 RAW_BITS_SETTINGS = BIT_DEPTHS + ("auto",)
@@ -94,7 +96,7 @@ def read_frames(path: str, bits: int = 14) -> list[tuple[str, np.ndarray]]:
     stem, suffix = os.path.splitext(os.path.basename(path))
     suffix = suffix.lower()
     readers = {".png": _png, ".tif": _tiff, ".tiff": _tiff, ".npy": _npy, ".fff": _flir,
-               ".seq": _flir}
+               ".seq": _flir, ".jpg": _thermal_jpeg, ".jpeg": _thermal_jpeg}
     if suffix not in readers:
         raise RawFileError(f"{path}: unknown raw frame type {suffix or '(no suffix)'!r} "
                            f"(read: {', '.join(RAW_SUFFIXES)})")
@@ -159,6 +161,18 @@ def _npy(path: str) -> list[np.ndarray]:
         raise RawFileError(f"{path}: shape {arr.shape}, expected a frame (H, W) or a stack "
                            "(N, H, W)")
     return [arr] if arr.ndim == 2 else list(arr)
+
+
+def _thermal_jpeg(path: str) -> list[np.ndarray]:
+    """A FLIR radiometric JPEG's or a DJI R-JPEG's raw counts (`data.thermal_jpeg`)."""
+    from irdepth_jax.data.thermal_jpeg import NoRawCountsError, ThermalFileError, read_thermal_jpeg
+
+    try:
+        return [read_thermal_jpeg(path)]
+    except NoRawCountsError as err:
+        raise NotThermalError(str(err)) from None
+    except (ThermalFileError, OSError) as err:
+        raise RawFileError(str(err)) from None
 
 
 def _flir(path: str) -> list[np.ndarray]:

@@ -35,12 +35,14 @@ class DataSource:
       raw_bits: bit depth of the raw counts (`DataConfig.raw_bits`: 14, 16 or 'auto'); every
         frame read is checked against it ('auto': up to 16 bits until `use_raw_bits` resolves
         it).
+      depth_label: MS2: the depth label version (`data.ms2.DEPTH_LABELS`; None: the default,
+        depth_filtered); refused for a folder dataset (one depth per frame).
     Raises:
       RunError (one line, naming the directory) when it is not a dataset.
     """
 
     def __init__(self, path: str, fmt: str = "auto", strict: bool = False,
-                 raw_bits: int | str = 14):
+                 raw_bits: int | str = 14, depth_label: str | None = None):
         from irdepth_jax.data.folder import DatasetError, FolderDataset
         from irdepth_jax.data.rawio import accepted_bits
 
@@ -53,12 +55,16 @@ class DataSource:
         except ValueError as err:
             raise RunError(str(err)) from None
         self.path, self.strict, self.raw_bits = path, strict, raw_bits
+        self.depth_label = depth_label
         self.format = fmt if fmt != "auto" else (
             "ms2" if os.path.isdir(os.path.join(path, "sync_data")) else "folder")
         self._error = DatasetError
         self._ms2: dict = {}
         self._folder = None
         if self.format == "folder":
+            if depth_label is not None:
+                raise RunError(f"--gt {depth_label}: depth label versions are MS2's; --data "
+                               f"{path} is a folder dataset (one depth per frame)")
             try:
                 self._folder = FolderDataset(path, raw_bits=raw_bits)
             except (DatasetError, ValueError, OSError) as err:
@@ -83,7 +89,8 @@ class DataSource:
                     self._folder.indices(split=split, labeled=labeled), stride)
             if split not in self._ms2:
                 self._ms2[split] = MS2Dataset(self.path, split, strict=self.strict,
-                                              raw_bits=self.raw_bits)
+                                              raw_bits=self.raw_bits,
+                                              depth_label=self.depth_label or "depth_filtered")
             ds = self._ms2[split]
             return ds, subsample(ds.indices(labeled=labeled), stride)
         except (self._error, ValueError, OSError) as err:
@@ -107,6 +114,17 @@ class DataSource:
         parts = [self.frames(split, optional=True) for split in ("train", "val", "test")]
         dataset = ConcatFrames(parts)
         return dataset, np.arange(len(dataset))
+
+    def describe(self, split: str = "train") -> dict:
+        """What the frames of `split` are, as a checkpoint records it: {'kind': 'synthetic'
+        (a dataset `irdepth synth` rendered) or 'real', 'format': 'folder' | 'ms2', 'path'
+        (absolute), 'frame_size': [H, W] (of the split's first frame)}."""
+        dataset, idx = self.frames(split)
+        synthetic = self._folder is not None and self._folder.meta.get("source") == "synthetic"
+        height, width = (self._folder.height, self._folder.width) if self._folder is not None \
+            else dataset.raw(int(idx[0])).shape
+        return {"kind": "synthetic" if synthetic else "real", "format": self.format,
+                "path": os.path.abspath(self.path), "frame_size": [int(height), int(width)]}
 
     def use_raw_bits(self, raw_bits: int | str) -> int:
         """Checks every frame read from now on against `raw_bits` (14, 16 or 'auto'), 'auto'

@@ -34,7 +34,14 @@ from irdepth_jax.train.runlog import RunLog, prepare_workdir
 from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
 from irdepth_jax.train.steps import stage1_loss_fn, stage2_loss_fn
 from irdepth_jax.train.validate import check_run
-from irdepth_jax.train.variables import init_depth, init_unet, load_stage1
+from irdepth_jax.train.variables import (
+    STAGE1_STAGES,
+    init_depth,
+    init_unet,
+    load_stage1,
+    read_trained_on,
+    take_stage1_settings,
+)
 from irdepth_jax.train.workdir_lock import last_checkpoint
 
 
@@ -83,6 +90,7 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     if opts.resume:
         _check_i2_continues_i1(opts.workdir, totals["stage1_i1"])
     prepare_workdir(opts.workdir, cfg, opts.resume)
+    trained_on = source.describe()
     log = RunLog(opts.workdir)
     try:
         log.info("stage1", parallel=dp.describe(), raw_bits=cfg.data.raw_bits,
@@ -105,6 +113,8 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
             stream = BatchStream(make_loader(dataset, idx, s1.batch_size, cfg.seed, True, cfg))
             meta = ({"segmentation": seg_info, "started_from": {"stage1_i1": i1_step}}
                     if phase_name == "stage1_i2" else {})
+            meta["trained_on"] = {"data": trained_on, "frames": len(idx),
+                                  "steps": {**done, phase_name: total}}
             phase = Phase(phase_name, state, (stage1_loss_fn, cfg, phase_name),
                           s1.accum_steps, s1.batch_size, total, stream, evaluate=evaluate,
                           step_offset=sum(done.values()), meta=meta)
@@ -197,9 +207,16 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     """Stage II: Depth Anything V2 on the frozen Stage I model's HSV images (or a baseline
     pre-processing, `cfg.stage2.preprocessing`) into `opts.workdir`.
 
+    The settings that define the Stage I model (`config.STAGE1_MODEL_KEYS`) are taken from
+    `opts.stage1_checkpoint` (`take_stage1_settings`), so the run's config describes the model
+    it trains on.
+
     Returns {'unet': Stage I variables or None, 'depth': final Depth Anything V2 params}.
     """
 
+    taken = {}
+    if opts.stage1_checkpoint is not None:
+        cfg, taken = take_stage1_settings(opts.stage1_checkpoint, cfg)
     cfg = resolve_raw_bits(cfg, source)
     check_run(cfg, source, opts, "stage2")
     s2 = cfg.stage2
@@ -210,8 +227,10 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                        "for a baseline without it use stage2.preprocessing=he "
                        "stage2.sky_loss=false")
     unet, segmentation = None, {"labeled_frames": None, "why": "no Stage I model"}
+    stage1_trained_on = None
     if opts.stage1_checkpoint is not None:
         unet, segmentation = load_stage1(opts.stage1_checkpoint, cfg)
+        stage1_trained_on = read_trained_on(opts.stage1_checkpoint, STAGE1_STAGES)
         check_segmentation_use(cfg, segmentation, opts.stage1_checkpoint)
     dataset, train_idx = phase_frames(source, "stage2", cfg)
     ref_depth = sky_reference_depth(cfg, source.max_depth())
@@ -225,6 +244,8 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         if unet is not None:
             log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
                      hue_mode=s2.hue_mode)
+        if taken:
+            log.info("stage2", settings_from_stage1={k: f"{v[1]} (was {v[0]})" for k, v in taken.items()})
         log.info("stage2", input=s2.preprocessing,
                  sky_loss=f"on, reference depth {ref_depth:.2f} m" if s2.sky_loss else "off")
         log.info("stage2", **depth_init)
@@ -236,9 +257,12 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                     if opts.eval and len(val[1]) else None)
         stream = BatchStream(make_loader(dataset, train_idx, s2.batch_size, cfg.seed, True, cfg))
         frozen = None if unet is None else {"unet": unet}
+        trained_on = {"data": source.describe(), "frames": len(train_idx),
+                      "steps": {"stage2": total}, "depth_network": depth_init,
+                      "stage1": stage1_trained_on}
         phase = Phase("stage2", state, (stage2_loss_fn, cfg, ref_depth), 1, s2.batch_size, total,
                       stream, frozen=frozen, evaluate=evaluate,
-                      meta={"segmentation": segmentation})
+                      meta={"segmentation": segmentation, "trained_on": trained_on})
         final = run_phase(phase, cfg, dp, opts, log)
         return {"unet": unet, "depth": final.params}
     finally:

@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import functools
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import Config, from_dict, resolved_raw_bits
+from irdepth_jax.config import STAGE1_MODEL_KEYS, Config, from_dict, get_key, resolved_raw_bits, with_keys
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
@@ -141,6 +141,48 @@ def _depth_of_run(path: str, cfg: Config) -> tuple[Any, dict]:
     return depth_model_config(run_cfg), model["depth"]
 
 
+def take_stage1_settings(path: str, cfg: Config, explicit: Collection[str] = ()
+                         ) -> tuple[Config, dict[str, tuple[Any, Any]]]:
+    """`cfg` with every setting that defines the Stage I model (`STAGE1_MODEL_KEYS`: the UNet's
+    sizes and switches, its raw normalisation, the bit depth) taken from the Stage I run at
+    `path`, the config that Stage II then stores, so that eval and predict rebuild the model it
+    was trained with.
+
+    Args:
+      path: the Stage I run (workdir or checkpoint directory), as for `load_stage1`.
+      cfg: the Stage II run's config.
+      explicit: dotted keys the user set (``key=value``); one of them set to another value
+        than Stage I's is refused (data.raw_bits=auto is not: it resolves to Stage I's).
+    Returns:
+      (config, {key: (value in `cfg`, Stage I's value)} for each setting that changed).
+    Raises:
+      RunError naming the key (or the missing checkpoint).
+    """
+    try:
+        directory, _ = find_checkpoint(path, STAGE1_STAGES)
+        stored = from_dict(read_meta(directory)["config"])
+    except CheckpointError as err:
+        raise RunError(f"--stage1-checkpoint: {err}") from None
+    changed = {}
+    for key in STAGE1_MODEL_KEYS:
+        mine, theirs = get_key(cfg, key), get_key(stored, key)
+        if mine == theirs or (key == "data.raw_bits" and mine == "auto"):
+            continue
+        if key in explicit:
+            trained = (f"Stage I was trained on {theirs}-bit raw counts" if key == "data.raw_bits"
+                       else f"the Stage I model has {key}={_word(theirs)}")
+            raise RunError(f"--stage1-checkpoint {path}: {trained}, this run sets "
+                           f"{key}={_word(mine)}; Stage II takes {key} from Stage I: leave it "
+                           "out, or retrain Stage I with it")
+        changed[key] = (mine, theirs)
+    return with_keys(cfg, {key: new for key, (_, new) in changed.items()}), changed
+
+
+def _word(value: Any) -> str:
+    """A config value as it is written in a ``key=value`` override."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
+
+
 def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
     """Stage I variables from a Stage I run and what its segmentation branch was trained on:
     ``{'labeled_frames': N, ...}`` (0 after I-1 only or I-2 without labels; None for an I-2
@@ -164,6 +206,60 @@ def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
                                               "why": "not recorded (older checkpoint)"}
 
 
+def read_trained_on(path: str, stages: Sequence[str] = ("stage2", "stage1_i2", "stage1_i1")
+                    ) -> dict | None:
+    """What the latest checkpoint of `stages` at `path` was trained on (its meta's
+    ``trained_on``: data kind, format, path and frame size, frames, steps, and for Stage II how
+    the depth network started and Stage I's record), or None when it was not recorded."""
+    try:
+        return read_meta(find_checkpoint(path, stages)[0]).get("trained_on")
+    except CheckpointError as err:
+        raise RunError(str(err)) from None
+
+
+FRAME_SIZE_FACTOR = 2.0
+"""An input frame side this many times larger or smaller than the training frames' is far from
+what the model saw (its features' scale in pixels changed)."""
+
+
+def describe_trained_on(trained_on: dict | None) -> str:
+    """One line saying what a model was trained on (`read_trained_on`'s record)."""
+    if not trained_on:
+        return "what it was trained on is not recorded (a checkpoint of an older version)"
+    data = trained_on["data"]
+    height, width = data["frame_size"]
+    steps = ", ".join(f"{phase} {n}" for phase, n in trained_on["steps"].items())
+    line = (f"trained on {data['kind']} frames, {height}x{width} ({trained_on['frames']} "
+            f"frames of {data['format']} dataset {data['path']}); steps: {steps}")
+    network = trained_on.get("depth_network")
+    if network:
+        line += f"; depth network backbone: {network['backbone']}, head: {network['head']}"
+    return line
+
+
+def input_warnings(trained_on: dict | None, frame_sizes: Collection[tuple[int, int]],
+                   data_kind: str = "real") -> list[str]:
+    """Lines warning that inputs differ in kind from what the model was trained on: real
+    (`data_kind`) frames given to a model trained on synthetic ones only, a frame size more than
+    `FRAME_SIZE_FACTOR` from the training frames'."""
+    if not trained_on:
+        return []
+    data = trained_on["data"]
+    height, width = data["frame_size"]
+    found = []
+    if data["kind"] == "synthetic" and data_kind != "synthetic":
+        found.append(f"this model was trained on synthetic frames only ({data['path']}); its "
+                     "output on real camera frames means nothing: train on real frames (MS2 or "
+                     "a folder dataset) first")
+    far = sorted({f"{h}x{w}" for h, w in frame_sizes
+                  if not (1 / FRAME_SIZE_FACTOR <= h / height <= FRAME_SIZE_FACTOR
+                          and 1 / FRAME_SIZE_FACTOR <= w / width <= FRAME_SIZE_FACTOR)})
+    if far:
+        found.append(f"frames of {', '.join(far)} are far from the {height}x{width} frames the "
+                     "model was trained on")
+    return found
+
+
 def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, dict]:
     """Loads a trained model for evaluation / prediction.
 
@@ -173,7 +269,7 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
     Returns:
       (config of the run, stage, {'unet': Stage I variables or None, 'depth': Depth Anything V2
       params or None, 'segmentation': what the segmentation branch was trained on, as the
-      run recorded it (`load_stage1`), or None}).
+      run recorded it (`load_stage1`), or None, 'trained_on': `read_trained_on`'s record}).
     """
     from irdepth_jax.config import apply_overrides
 
@@ -182,12 +278,13 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
         meta = read_meta(directory)
         cfg = apply_overrides(from_dict(meta["config"]), list(overrides))
         segmentation = meta.get("segmentation")
+        trained_on = meta.get("trained_on")
         if stage == "stage1_i1":
             segmentation = {"labeled_frames": 0, "why": "Stage I-1 only (no I-2 checkpoint)"}
         if stage.startswith("stage1"):
             items, _ = restore_items(directory, stage, {"model": init_unet(cfg)})
             return cfg, stage, {"unet": dict(items["model"]), "depth": None,
-                                "segmentation": segmentation}
+                                "segmentation": segmentation, "trained_on": trained_on}
         templates = {"model": {"params": random_depth(cfg), "batch_stats": {}}}
         has_unet = cfg.stage2.preprocessing == "hsv" or cfg.stage2.sky_loss
         if has_unet:
@@ -197,7 +294,7 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
         raise RunError(str(err)) from None
     unet = dict(items["frozen"]["unet"]) if has_unet else None
     return cfg, stage, {"unet": unet, "depth": items["model"]["params"],
-                        "segmentation": segmentation}
+                        "segmentation": segmentation, "trained_on": trained_on}
 
 
 def save_model(workdir: str, cfg: Config, unet_vars: dict | None, da_params: Any,

@@ -1,0 +1,70 @@
+"""Usage errors are reported at once: checked before JAX is imported or a model is loaded."""
+
+import os
+import subprocess
+import sys
+import time
+
+import pytest
+
+PROBE = """
+import sys
+from irdepth_jax import cli
+code = cli.main(sys.argv[1:])
+print("jax imported" if "jax" in sys.modules else "jax not imported", code)
+"""
+
+
+def irdepth(*argv):
+    """(exit code line, stderr, seconds) of `irdepth ARGV` in a fresh interpreter."""
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    start = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-c", PROBE, *map(str, argv)], capture_output=True,
+                          text=True, env=env, timeout=120)
+    return proc.stdout.strip(), proc.stderr.strip(), time.perf_counter() - start
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["predict", "--checkpoint", "{tmp}", "--out", "{tmp}/o", "{tmp}/nonexistent.png"],
+     "{tmp}/nonexistent.png: no such file or directory"),
+    (["predict", "--checkpoint", "{tmp}/nothing", "--out", "{tmp}/o", "{tmp}"],
+     "--checkpoint {tmp}/nothing: no such file or directory"),
+    (["predict", "--checkpoint", "{tmp}", "--out", "{tmp}/o", "--depth-png", "{tmp}"],
+     "--depth-png adds per-frame depth PNGs to --video"),
+    (["eval", "--workdir", "{tmp}", "--data", "{tmp}/no_data"],
+     "--data {tmp}/no_data: no such file or directory"),
+    (["export", "--checkpoint", "{tmp}/none", "--format", "onnx", "--height", "8", "--width", "8",
+      "--out", "{tmp}/m.onnx"], "--checkpoint {tmp}/none: no such file or directory"),
+    (["train", "stage2", "--data", "{tmp}", "--workdir", "{tmp}/w", "--stage1-checkpoint",
+      "{tmp}/s1"], "--stage1-checkpoint {tmp}/s1: no such file or directory"),
+])
+def test_usage_errors_come_before_jax(tmp_path, argv, message):
+    out, err, seconds = irdepth(*[a.format(tmp=tmp_path) for a in argv])
+    assert out == "jax not imported 2", (out, err)
+    assert err.startswith(f"irdepth: error: {message.format(tmp=tmp_path)}"), err
+    assert len(err.splitlines()) == 1
+    assert seconds < 3, seconds
+
+
+def test_synth_defaults_fit_any_n(tmp_path, capsys):
+    """--labeled defaults to half of --n (a fixed 48 exceeded --n 4); counts read as English;
+    errors name flags, not API keywords."""
+    from irdepth_jax import cli
+
+    out = tmp_path / "d"
+    assert cli.main(["synth", "--out", str(out), "--n", "4", "--size", "16x24",
+                     "--no-progress"]) == 0
+    assert "wrote 4 frames (2 labelled, 16x24)" in capsys.readouterr().out
+    assert cli.main(["synth", "--out", str(tmp_path / "one"), "--n", "1", "--size", "16x24",
+                     "--no-progress"]) == 0
+    assert "wrote 1 frame (0 labelled" in capsys.readouterr().out
+    for argv, message in (
+            (["--out", str(out), "--n", "4"],
+             f"--out {out}: directory exists and is not empty; choose another path, or pass "
+             "--overwrite to replace the dataset"),
+            (["--out", str(tmp_path / "e"), "--n", "4", "--labeled", "5"],
+             "--labeled 5: choose 0 to --n (4)")):
+        assert cli.main(["synth", *argv, "--no-progress"]) == 2
+        err = capsys.readouterr().err
+        assert err.strip() == f"irdepth: error: {message}", err
+    assert not (tmp_path / "e").exists()
