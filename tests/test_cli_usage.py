@@ -54,7 +54,7 @@ def test_synth_defaults_fit_any_n(tmp_path, capsys):
     out = tmp_path / "d"
     assert cli.main(["synth", "--out", str(out), "--n", "4", "--size", "16x24",
                      "--no-progress"]) == 0
-    assert "wrote 4 frames (2 labelled, 16x24)" in capsys.readouterr().out
+    assert "wrote 4 frames (2 labelled, 16x24, street scenes)" in capsys.readouterr().out
     assert cli.main(["synth", "--out", str(tmp_path / "one"), "--n", "1", "--size", "16x24",
                      "--no-progress"]) == 0
     assert "wrote 1 frame (0 labelled" in capsys.readouterr().out
