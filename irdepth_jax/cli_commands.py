@@ -238,6 +238,8 @@ def cmd_predict(args) -> int:
     videos = sum(f.endswith(".mp4") for f in written)
     what = f"{videos} videos and {len(written) - videos} files" if args.video else \
         f"{len(written)} files"
+    if not args.video and not any(f.endswith("_depth.png") for f in written):
+        what += " (pseudo-RGB and HSV images, no depth: a Stage I model)"
     print(f"wrote {what} to {args.out}")
     return 0
 
