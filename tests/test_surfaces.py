@@ -240,3 +240,31 @@ def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_p
         MS2Dataset(root, "test_day", strict=True)
     with pytest.raises(ValueError, match="4 of 6 thermal frames of split 'test_day' have no depth"):
         DataSource(str(root), strict=True).frames("test_day")
+
+
+# --------------------------------------------------------------------------- 4. data of a resume
+def test_resume_on_a_replaced_dataset_is_refused(synthetic_data, tmp_path, capsys):
+    """A run stopped with --stop-at, its dataset then replaced: frames added (said as such, not
+    as a loader-state mismatch), or the same number of other frames; the resume is refused,
+    naming the data and what changed. On the data it started with it resumes."""
+    import shutil
+
+    from trained_runs import DATA, QUICK, copy_run
+
+    from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
+
+    data, work = copy_run(synthetic_data, tmp_path / "data"), tmp_path / "run"
+    argv = ["train", "stage1", "--data", data, "--workdir", work, "--steps", 2, *QUICK]
+    code, _, err = run([*argv, "--stop-at", 1], capsys)
+    assert code == cli.EXIT_INTERRUPTED and "stopped at step 1" in err, err
+    for changed, phrase in (({"n": 32}, "stage1_i1: 5 frames added (16 -> 21)"),
+                            ({"seed": 7}, "stage1_i1: ")):
+        write_synthetic_dataset(data, **{**DATA, **changed}, progress=False, overwrite=True)
+        code, stdout, err = run([*argv, "--resume"], capsys)
+        assert code == 2 and "loader state" not in err, err
+        assert (f"irdepth: error: --resume: the dataset changed since this run started "
+                f"({work}/data_fingerprint.json): --data {data}: {phrase}") in err, err
+    shutil.rmtree(data)
+    copy_run(synthetic_data, data)
+    code, stdout, err = run([*argv, "--resume"], capsys)
+    assert code == 0 and "stage1 done" in stdout, err
