@@ -268,3 +268,27 @@ def test_resume_on_a_replaced_dataset_is_refused(synthetic_data, tmp_path, capsy
     copy_run(synthetic_data, data)
     code, stdout, err = run([*argv, "--resume"], capsys)
     assert code == 0 and "stage1 done" in stdout, err
+
+
+# --------------------------------------------------------------------------- 8. corrupt checkpoints
+@pytest.mark.parametrize("damage", ["truncate", "flip"])
+def test_a_corrupt_checkpoint_is_one_line(stage2_run, tmp_path, capsys, damage):
+    """A model data file of the last checkpoint truncated to half, or with its first 64 bytes
+    inverted: predict stops with one line naming the checkpoint as corrupt."""
+    from trained_runs import copy_run
+
+    work = copy_run(stage2_run, tmp_path / "run")
+    step = work / "checkpoints" / "stage2" / "2"
+    data = max((step / "model").rglob("d/*"), key=lambda p: p.stat().st_size)
+    blob = bytearray(data.read_bytes())
+    if damage == "truncate":
+        blob = blob[:len(blob) // 2]
+    else:  # in its header (inverted weight values would read as non-finite weights)
+        blob[:64] = bytes(b ^ 0xFF for b in blob[:64])
+    data.write_bytes(bytes(blob))
+    frames = write_frames(tmp_path / "frames", range(1))
+    code, stdout, err = run(["predict", "--checkpoint", work, "--out", tmp_path / "out",
+                             "--no-progress", frames], capsys)
+    line = one_error_line(err)
+    assert code == 2 and f"checkpoint {step.parent} step 2 is corrupt" in line, line
+    assert len(line) < 250, line
