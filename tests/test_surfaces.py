@@ -292,3 +292,23 @@ def test_a_corrupt_checkpoint_is_one_line(stage2_run, tmp_path, capsys, damage):
     line = one_error_line(err)
     assert code == 2 and f"checkpoint {step.parent} step 2 is corrupt" in line, line
     assert len(line) < 250, line
+
+
+# --------------------------------------------------------------------------- 10. damaged inputs
+def test_corrupt_lzw_tiff_and_empty_npy_name_the_file(tmp_path):
+    import tifffile
+
+    from irdepth_jax.data.rawio import RawFileError, read_frames
+
+    tiff = tmp_path / "lzw.tif"
+    tifffile.imwrite(tiff, np.random.default_rng(0).integers(3000, 9000, (64, 80)).astype(
+        np.uint16), compression="lzw")
+    blob = bytearray(tiff.read_bytes())
+    blob[1000:1200] = bytes(b ^ 0xFF for b in blob[1000:1200])  # inside the LZW strips
+    tiff.write_bytes(bytes(blob))
+    with pytest.raises(RawFileError, match=rf"^{tiff}: not a readable TIFF \(.*LZW"):
+        read_frames(str(tiff))
+    empty = tmp_path / "empty.npy"
+    empty.write_bytes(b"")
+    with pytest.raises(RawFileError, match=rf"^{empty}: not a readable .npy array"):
+        read_frames(str(empty))
