@@ -312,3 +312,35 @@ def test_corrupt_lzw_tiff_and_empty_npy_name_the_file(tmp_path):
     empty.write_bytes(b"")
     with pytest.raises(RawFileError, match=rf"^{empty}: not a readable .npy array"):
         read_frames(str(empty))
+
+
+# --------------------------------------------------------------------------- 9. experiment caches
+def test_a_cached_run_is_trained_by_one_runner(tmp_path):
+    """Two experiment runners on one --cache: while one holds a cached run's workdir lock (taken
+    here by the test), the other stops with one line instead of training into it; once the
+    first has finished (trained.json), the second only reads its time."""
+    import json
+    import types
+
+    from experiments.cache import Context
+    from irdepth_jax.train.phase import RunOptions
+    from irdepth_jax.train.workdir_lock import acquire, release
+
+    workdir = tmp_path / "runs" / "stage1-abc"
+    workdir.mkdir(parents=True)
+    trained = []
+    runner = types.SimpleNamespace(cache=str(tmp_path), log=lambda line: None, source=None)
+    runner._trained = lambda w: Context._trained(runner, w)
+    cfg = types.SimpleNamespace(seed=0)
+    opts = RunOptions(workdir=str(workdir))
+    lock = acquire(str(workdir))  # the other runner, training
+    try:
+        with pytest.raises(SystemExit, match=rf"cached run {workdir} is in use by another run "
+                                             rf"\(pid {os.getpid()}.*another runner on this --cache"):
+            Context._train(runner, lambda *a: trained.append(a), "stage1", cfg, opts)
+        assert trained == []
+        (workdir / "trained.json").write_text(json.dumps({"wall_s": 12.5}))
+    finally:
+        release(lock)
+    assert Context._train(runner, lambda *a: trained.append(a), "stage1", cfg, opts) == 12.5
+    assert trained == [] and not (workdir / "irdepth.lock").exists()
