@@ -63,6 +63,9 @@ def _run_config_file(path: str):
         return scope["get_config"]() if "get_config" in scope else scope.get("config")
     except SyntaxError as err:
         raise CliError(f"--config {path}: line {err.lineno}: syntax error ({err.msg})") from None
+    except SystemExit as err:  # sys.exit() in the file would end irdepth without a word
+        raise CliError(f"--config {path}: the file called sys.exit({err.code!r}) while it ran; "
+                       "a config file defines get_config() or config") from None
     except Exception as err:  # noqa: BLE001 - any error of the user's file, as one line
         lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == path]
         where = f"line {lines[-1]}: " if lines else ""

@@ -344,3 +344,17 @@ def test_a_cached_run_is_trained_by_one_runner(tmp_path):
         release(lock)
     assert Context._train(runner, lambda *a: trained.append(a), "stage1", cfg, opts) == 12.5
     assert trained == [] and not (workdir / "irdepth.lock").exists()
+
+
+# --------------------------------------------------------------------------- extras
+@pytest.mark.parametrize("call", ["sys.exit(3)", "sys.exit(0)", "exit()"])
+def test_a_config_file_that_exits_is_reported(tmp_path, capsys, call):
+    """A .py config calling sys.exit() made irdepth exit with its code and no word (exit 0 as
+    if trained, for sys.exit(0)); now a one-line error naming the file, before any data is read."""
+    config = tmp_path / "cfg.py"
+    config.write_text(f"import sys\n{call}\n")
+    code, stdout, err = run(["train", "stage1", "--data", tmp_path / "none", "--workdir",
+                             tmp_path / "w", "--config", config], capsys)
+    line = one_error_line(err)
+    assert code == 2 and f"--config {config}: the file called sys.exit(" in line, line
+    assert not (tmp_path / "w").exists()
