@@ -224,21 +224,35 @@ class Context:
         """Runs `fn(cfg, source, opts)` (once: a finished run is only timed); returns the
         training wall time."""
         from irdepth_jax.errors import Interrupted, RunError
+        from irdepth_jax.train.workdir_lock import WorkdirLocked, acquire, release
 
         done = self._trained(opts.workdir)
         if done is not None:
             return done
-        self.log(f"[{kind} seed {cfg.seed}] training in {os.path.relpath(opts.workdir, self.cache)}")
-        started = time.time()
+        os.makedirs(opts.workdir, exist_ok=True)
+        try:  # the workdir lock of `irdepth train`: one runner trains a cached run
+            lock = acquire(opts.workdir, "cached run")
+        except WorkdirLocked as err:
+            raise SystemExit(f"{err} (another runner on this --cache trains it; re-run this "
+                             "command when it has finished)") from None
         try:
-            fn(cfg, self.source, opts)
-        except Interrupted as err:
-            self.log(f"{err}\nre-run the same command to continue")
-            raise SystemExit(130) from None
-        except RunError as err:
-            raise SystemExit(str(err)) from None
-        wall_s = round(time.time() - started, 1)
-        _write_json(os.path.join(opts.workdir, "trained.json"), {"wall_s": wall_s})
+            done = self._trained(opts.workdir)  # finished while this runner waited for the lock
+            if done is not None:
+                return done
+            self.log(f"[{kind} seed {cfg.seed}] training in "
+                     f"{os.path.relpath(opts.workdir, self.cache)}")
+            started = time.time()
+            try:
+                fn(cfg, self.source, opts)
+            except Interrupted as err:
+                self.log(f"{err}\nre-run the same command to continue")
+                raise SystemExit(130) from None
+            except RunError as err:
+                raise SystemExit(str(err)) from None
+            wall_s = round(time.time() - started, 1)
+            _write_json(os.path.join(opts.workdir, "trained.json"), {"wall_s": wall_s})
+        finally:
+            release(lock)
         return wall_s
 
     def _stage1_i1(self, cfg) -> float:

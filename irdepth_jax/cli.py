@@ -97,8 +97,9 @@ def _progress_flag(p: argparse.ArgumentParser) -> None:
 
 def _strict_flag(p: argparse.ArgumentParser) -> None:
     p.add_argument("--strict", action="store_true",
-                   help="MS2: fail when a sequence named by a split list is not on disk "
-                        "(default: read the sequences present, warn once per split)")
+                   help="MS2: fail when a sequence named by a split list is not on disk, or a "
+                        "thermal frame has no depth file (default: read what is present, warn "
+                        "once per split)")
 
 
 def _compile_cache_flag(p: argparse.ArgumentParser) -> None:

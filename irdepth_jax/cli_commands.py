@@ -65,6 +65,9 @@ def _run_config_file(path: str):
         return scope["get_config"]() if "get_config" in scope else scope.get("config")
     except SyntaxError as err:
         raise CliError(f"--config {path}: line {err.lineno}: syntax error ({err.msg})") from None
+    except SystemExit as err:  # sys.exit() in the file would end irdepth without a word
+        raise CliError(f"--config {path}: the file called sys.exit({err.code!r}) while it ran; "
+                       "a config file defines get_config() or config") from None
     except Exception as err:  # noqa: BLE001 - any error of the user's file, as one line
         lines = [f.lineno for f in traceback.extract_tb(err.__traceback__) if f.filename == path]
         where = f"line {lines[-1]}: " if lines else ""
@@ -301,6 +304,8 @@ def cmd_predict(args) -> int:
     videos = sum(f.endswith(".mp4") for f in written)
     what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
             if args.video else counted(len(written), "file"))
+    if not args.video and not any("_depth" in os.path.basename(f) for f in written):
+        what += " (pseudo-RGB and HSV images, no depth: a Stage I model)"
     print(f"wrote {what} to {args.out}")
     return 0
 

@@ -76,15 +76,17 @@ def sample_frames(shape: tuple[int, int, int], bits: int, path: str | None = Non
     """(N, H, W) uint16 frames for the export-time check.
 
     Without `path`: rendered synthetic scenes (`data.synthetic.render_scene`, seeds 0..N-1;
-    14-bit counts, x 4 for 16 bits). With it: the frames of the raw file (`data.rawio`, a stack
-    gives several), repeated to N; each must be H x W (ExportError naming the file otherwise).
+    14-bit counts, x 4 for 16 bits; rendered at 8 x 8 or more and cropped, as the renderer's
+    scenes need 8 pixels a side and the model takes any size). With it: the frames of the raw
+    file (`data.rawio`, a stack gives several), repeated to N; each must be H x W (ExportError
+    naming the file otherwise).
     """
     n, height, width = shape
     if path is None:
         from irdepth_jax.data.synthetic import render_scene
 
-        frames = [render_scene(k, height=height, width=width)["raw14"].astype(np.uint16)
-                  << (bits - 14) for k in range(n)]
+        frames = [render_scene(k, height=max(height, 8), width=max(width, 8))["raw14"][
+                  :height, :width].astype(np.uint16) << (bits - 14) for k in range(n)]
     else:
         from irdepth_jax.data.rawio import read_frames
 

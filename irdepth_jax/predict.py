@@ -282,11 +282,20 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     from irdepth_jax.config import resolved_raw_bits
     from irdepth_jax.imaging.raw import BIT_DEPTHS
     from irdepth_jax.train.variables import load_model
+    from irdepth_jax.train.workdir_lock import acquire, release
 
     batch_size = default_batch_size() if batch_size is None else batch_size
     if batch_size < 1:
         raise RunError(f"--batch-size {batch_size}: must be at least 1")
+    if video:
+        from irdepth_jax.video import fps_problem
+
+        if fps_problem(fps):
+            raise RunError(f"--fps {fps:g}: {fps_problem(fps)}")
+    _check_out_is_no_input(out_dir, inputs)
     cfg, _, model = load_model(path, overrides)
+    if model["depth"] is None and depth_png_frames:
+        raise RunError(f"--depth-png: {path} is a Stage I model, it has no depth output")
     if model["depth"] is not None and cfg.stage2.preprocessing == "rgb":
         raise RunError(f"{path}: this model takes visible RGB images "
                          "(stage2.preprocessing=rgb), not raw frames")
@@ -322,7 +331,13 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
               "NAME_depth_relative.png holds depth x 256 up to an unknown scale, not metres; "
               "scale it to metres with known distances (irdepth eval --align median does it "
               "per image against ground truth)", file=sys.stderr)
+    if model["depth"] is None:
+        print(f"irdepth: note: {path} is a Stage I model, it has no depth output: "
+              + ("its videos show raw | pseudo-RGB, no depth" if video else
+                 "writing its pseudo-RGB and HSV images (NAME_rgb.png, NAME_hsv.png) only; "
+                 "give a Stage II run for depth"), file=sys.stderr)
     make_dirs(out_dir)
+    lock = acquire(out_dir, "--out folder")  # one run per folder: a frame's files are one run's
     predictor = Predictor(cfg, model, bits)
     from tqdm.auto import tqdm
 
@@ -355,6 +370,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     finally:
         writers.close()
         bar.close()
+        release(lock)
     return writers.written
 
 
@@ -366,6 +382,16 @@ def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set)
     print(f"irdepth: model {path}: {describe_trained_on(trained_on)}", file=sys.stderr)
     for line in input_warnings(trained_on, shapes):
         print(f"irdepth: WARNING: {line}", file=sys.stderr)
+
+
+def _check_out_is_no_input(out_dir: str, inputs: Sequence[str]) -> None:
+    """RunError when `out_dir` is one of the input folders: a later run on that folder would
+    read the outputs (16-bit NAME_depth.png among them) as raw frames."""
+    out = os.path.realpath(out_dir)
+    for item in inputs:
+        if os.path.isdir(item) and os.path.realpath(item) == out:
+            raise RunError(f"--out {out_dir} is the input folder {item}: a later run on it would "
+                           "read these outputs as raw frames; choose another --out folder")
 
 
 def video_name(sequence: ThermalInput) -> str:
@@ -418,8 +444,11 @@ def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
     except KeyboardInterrupt:
         partial = video.keep_partial()
         if partial:
-            print(f"irdepth: interrupted: {partial} holds the first {video.frames} of "
-                  f"{sequence.frames} frames", file=sys.stderr)
+            print(f"irdepth: interrupted: {partial} holds {video.kept} of the "
+                  f"{sequence.frames} frames (those encoded before Ctrl-C)", file=sys.stderr)
+        elif video.frames:
+            print(f"irdepth: interrupted: the {video.frames} frames encoded before Ctrl-C do "
+                  f"not decode as a video; nothing kept of {target}", file=sys.stderr)
         raise
     except BaseException:
         video.abort()

@@ -5,12 +5,15 @@ bundled in its wheel: no ffmpeg binary needed; the `video` extra).
 when it is closed, so a video is complete or absent under its name, as every other output
 (`irdepth_jax.fileio`). H.264's 4:2:0 colour needs even sides: an odd height or width is padded
 by one repeated edge row / column. An interrupted run keeps the frames encoded so far in
-``NAME.partial.mp4`` (`VideoWriter.keep_partial`).
+``NAME.partial.mp4`` (`VideoWriter.keep_partial`). A finished file is decoded and its frames
+counted before it takes its name: a video missing frames is an error, never "written", and a
+partial one that decodes to no frame is removed.
 """
 
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import uuid
 
@@ -22,6 +25,17 @@ CODEC = "libx264"
 PIXEL_FORMAT = "yuv420p"
 QUALITY_CRF = "18"
 """x264's constant rate factor: 18 is visually lossless for these false-colour panels."""
+MIN_FPS, MAX_FPS = 0.01, 1000.0
+"""The frame rates a video may have. The MP4 stores the rate as a fraction (denominator at most
+1001); past 1000 frames/s, beyond any thermal camera's rate, written files were seen to decode
+to fewer frames than were written (and an infinite rate cannot be stored at all)."""
+
+
+def fps_problem(fps: float) -> str | None:
+    """Why `fps` cannot be a video's frame rate (None when it can)."""
+    if not (math.isfinite(fps) and MIN_FPS <= fps <= MAX_FPS):
+        return f"must be a number from {MIN_FPS:g} to {MAX_FPS:g} frames per second"
+    return None
 
 
 def _import_av():
@@ -47,14 +61,17 @@ class VideoWriter:
     """
 
     def __init__(self, path: str | os.PathLike, fps: float):
-        if not fps > 0:
-            raise WriteError(f"{os.fspath(path)}: frame rate {fps}: must be positive")
+        problem = fps_problem(fps)
+        if problem:
+            raise WriteError(f"{os.fspath(path)}: frame rate {fps:g}: {problem}")
         self.av = _import_av()
         self.path = os.fspath(path)
         folder, name = os.path.split(os.path.abspath(self.path))
         self.tmp = os.path.join(folder, f".{name}.{uuid.uuid4().hex[:8]}.tmp.mp4")
         self.fps = fps
         self.frames = 0
+        self.kept = 0
+        """Frames `keep_partial` kept (those its file decodes to)."""
         self.size: tuple[int, int] | None = None
         self.container = self.stream = None
 
@@ -109,33 +126,39 @@ class VideoWriter:
             raise self._fail(err) from err
         self.frames += 1
 
-    def _finish(self, target: str) -> None:
-        """Flushes the encoder, closes the file and renames it to `target`."""
+    def _finish(self, target: str, whole: bool) -> int:
+        """Flushes the encoder, closes the file, decodes it and renames it to `target` when it
+        decodes to every frame written (`whole`) or to at least one; returns that count."""
         if self.container is None:
             raise self._fail(ValueError("no frame was written"))
         try:
             self.container.mux(self.stream.encode(None))
             self.container.close()
             self.container = None
+            decoded = _decoded_frames(self.av, self.tmp)
+            if decoded == 0 or (whole and decoded != self.frames):
+                raise ValueError(f"the file decodes to {decoded} of the {self.frames} frames "
+                                 "written")
             os.replace(self.tmp, target)
-        except (OSError, self.av.FFmpegError) as err:
+        except (OSError, ValueError, self.av.FFmpegError) as err:
             raise self._fail(err) from err
+        return decoded
 
     def close(self) -> int:
         """Finalises the video under its name; returns the number of frames."""
-        self._finish(self.path)
-        return self.frames
+        return self._finish(self.path, whole=True)
 
     def partial_path(self) -> str:
         """Where `keep_partial` puts an interrupted video: ``NAME.partial.mp4``."""
         return os.path.splitext(self.path)[0] + ".partial.mp4"
 
     def keep_partial(self) -> str | None:
-        """Finalises the frames written so far as `partial_path` (None when there are none)."""
+        """Finalises the frames written so far as `partial_path`, `kept` of them decodable (None,
+        and no file, when none is: e.g. an interruption that lost the first keyframe)."""
         if self.container is None:
             return None
         try:
-            self._finish(self.partial_path())
+            self.kept = self._finish(self.partial_path(), whole=False)
         except WriteError:
             return None
         return self.partial_path()
@@ -151,6 +174,15 @@ class VideoWriter:
             self.container = None
         with contextlib.suppress(OSError):
             os.remove(self.tmp)
+
+
+def _decoded_frames(av, path: str) -> int:
+    """The number of frames a video file decodes to (0 for a file FFmpeg cannot read)."""
+    try:
+        with av.open(path) as container:
+            return sum(1 for _ in container.decode(container.streams.video[0]))
+    except (av.FFmpegError, IndexError):
+        return 0
 
 
 def video_info(path: str | os.PathLike) -> dict:

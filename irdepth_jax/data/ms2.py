@@ -16,8 +16,9 @@ lists together). The condition of a frame comes from the test list holding its s
 the one of a test list naming the same sequence, else the `conditions` mapping given to the
 constructor, else 'unknown'.
 
-Frames are the img_left PNGs that have a depth_filtered file (others are skipped and counted in
-`skipped`), sorted by sequence (in list order) then name. A partial download is read as it is:
+Frames are the img_left PNGs that have a depth_filtered file (others are skipped, counted in
+`skipped` and in one `DatasetWarning`; `strict=True` raises `MissingDepthError` instead), sorted
+by sequence (in list order) then name. A partial download is read as it is:
 sequences of the lists without sync_data/<seq>/thr/img_left are skipped with one
 `DatasetWarning` naming them (kept in `missing`); `strict=True` raises `MissingSequencesError`
 instead. The MS2 test protocol evaluates `subsample(ds.indices(), 10)`: the official loader's
@@ -53,6 +54,10 @@ class MissingSequencesError(DatasetError):
     """strict=True: sequences named by a split list are not on disk."""
 
 
+class MissingDepthError(DatasetError):
+    """strict=True: thermal frames of a split have no depth_filtered file."""
+
+
 def subsample(indices: np.ndarray, stride: int) -> np.ndarray:
     """The MS2 protocol's frame subsampling, as the official loader (UkcheolShin/SupDepth4Thermal
     `DataLoader_MS2.crawl_folders_depth`) does it over the concatenated frames of a split.
@@ -86,7 +91,9 @@ class MS2Dataset:
       split: one of SPLITS.
       conditions: optional {sequence: condition} for sequences no test list names.
       strict: raise `MissingSequencesError` when a listed sequence is not on disk (default:
-        skip it, with one `DatasetWarning` naming the missing ones, listed in `missing`).
+        skip it, with one `DatasetWarning` naming the missing ones, listed in `missing`), and
+        `MissingDepthError` when a thermal frame has no depth file (default: skip it, with one
+        `DatasetWarning` counting them).
       raw_bits: bit depth the raw counts are checked against when a frame is read: 14, 16 or
         'auto' (up to 16, until a run resolves it).
       depth_label: which depth label version is the ground truth (`DEPTH_LABELS`).
@@ -142,6 +149,14 @@ class MS2Dataset:
             if strict or not self.records:
                 raise (MissingSequencesError if strict else DatasetError)(f"{what}: {names}")
             warnings.warn(f"{what}, skipped: {names}", DatasetWarning, stacklevel=2)
+        if self.skipped:
+            what = (f"{self.root}: {self.skipped} of {self.skipped + len(self.records)} thermal "
+                    f"frames of split {split!r} have no depth file "
+                    "(proj_depth/<seq>/thr/depth_filtered/<name>.png)")
+            if strict:
+                raise MissingDepthError(what)
+            if self.records:
+                warnings.warn(f"{what}, skipped", DatasetWarning, stacklevel=2)
         if not self.records:
             raise DatasetError(f"{self.root}: no thermal frames with depth in split {split!r} "
                                f"({DEPTH_LABELS[depth_label]}/<seq>/thr/{depth_label})")

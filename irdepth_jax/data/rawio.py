@@ -143,7 +143,8 @@ def _tiff(path: str) -> list[np.ndarray]:
         with tifffile.TiffFile(path) as tif:
             pages = [(page.samplesperpixel, page.asarray()) for page in tif.pages
                      if not page.is_reduced]
-    except (tifffile.TiffFileError, ValueError, OSError) as err:
+    except (tifffile.TiffFileError, ValueError, OSError, RuntimeError) as err:
+        # RuntimeError: imagecodecs' decoders (e.g. corrupt LZW data), a message without the file
         raise RawFileError(f"{path}: not a readable TIFF ({err})") from None
     for k, (samples, _) in enumerate(pages):
         if samples > 1:
@@ -155,7 +156,7 @@ def _tiff(path: str) -> list[np.ndarray]:
 def _npy(path: str) -> list[np.ndarray]:
     try:
         arr = np.load(path, allow_pickle=False)
-    except (ValueError, OSError) as err:
+    except (ValueError, OSError, EOFError) as err:  # EOFError: an empty file
         raise RawFileError(f"{path}: not a readable .npy array ({err})") from None
     if arr.ndim not in (2, 3):
         raise RawFileError(f"{path}: shape {arr.shape}, expected a frame (H, W) or a stack "

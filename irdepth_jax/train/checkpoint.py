@@ -22,6 +22,7 @@ mapped on restore, so checkpoints written under the old names still load and res
 
 from __future__ import annotations
 
+import contextlib
 import errno
 import logging
 import os
@@ -146,8 +147,9 @@ class Checkpointer:
     def read_meta(self, step: int | None = None) -> dict:
         """The JSON meta of `step` (latest by default); CheckpointError if there is none."""
         step = self._resolve(step)
-        return dict(self.manager.restore(
-            step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
+        with _readable(f"{self.directory} step {step}"):
+            return dict(self.manager.restore(
+                step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
 
     def restore(self, template: TrainState, step: int | None = None, model_only: bool = False
                 ) -> tuple[TrainState, dict]:
@@ -191,7 +193,8 @@ class Checkpointer:
             raise CheckpointError(f"checkpoint {self.directory} step {step} is a "
                                   f"{meta.get('stage')!r} checkpoint, expected "
                                   f"{' or '.join(map(repr, stages))}")
-        stored = self.manager.item_metadata(step)
+        with _readable(f"{self.directory} step {step}"):
+            stored = self.manager.item_metadata(step)
         legacy = set()  # items stored under old key names (`train.legacy_names`)
         for name, template in templates.items():
             if stored.get(name) is None:
@@ -200,9 +203,10 @@ class Checkpointer:
                 legacy.add(name)
             _check_shapes(stored[name].tree, to_legacy(template) if name in legacy else template,
                           f"{self.directory} step {step} {name}")
-        restored = self.manager.restore(step, args=ocp.args.Composite(**{
-            name: ocp.args.StandardRestore(_abstract(to_legacy(t) if name in legacy else t))
-            for name, t in templates.items()}))
+        with _readable(f"{self.directory} step {step}"):
+            restored = self.manager.restore(step, args=ocp.args.Composite(**{
+                name: ocp.args.StandardRestore(_abstract(to_legacy(t) if name in legacy else t))
+                for name, t in templates.items()}))
         items = {name: from_legacy(restored[name]) if name in legacy else restored[name]
                  for name in templates}
         if check_finite:
@@ -224,6 +228,20 @@ class Checkpointer:
         elif step not in self.manager.all_steps():
             raise CheckpointError(f"no checkpoint step {step} in {self.directory}")
         return step
+
+
+@contextlib.contextmanager
+def _readable(where: str):
+    """Within the block, an error of orbax / TensorStore reading checkpoint `where` (a truncated
+    or bit-flipped file: a bare Exception, or a ValueError of ~1,000 characters of settings) is
+    one line naming it as corrupt; the original error is chained (IRDEPTH_DEBUG=1 shows it)."""
+    try:
+        yield
+    except CheckpointError:
+        raise
+    except Exception as err:  # noqa: BLE001 - whatever orbax raises on a damaged file
+        raise CheckpointError(f"checkpoint {where} is corrupt: its files cannot be read "
+                              f"({type(err).__name__}; IRDEPTH_DEBUG=1 shows the detail)") from err
 
 
 def has_checkpoint(directory: str) -> bool:

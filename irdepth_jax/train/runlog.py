@@ -7,6 +7,8 @@ Work directory of a run::
     WORKDIR/metrics.jsonl           one JSON object per logged step (and per periodic eval)
     WORKDIR/tb/                     TensorBoard event files (tensorboardX)
     WORKDIR/checkpoints/<phase>/    orbax checkpoints of each phase (stage1_i1, stage1_i2, stage2)
+    WORKDIR/data_fingerprint.json   what each stage trains on (`data.fingerprint`), checked on
+                                    --resume
 """
 
 from __future__ import annotations
@@ -140,3 +142,36 @@ def prepare_workdir(workdir: str, cfg: Config, resume: bool) -> None:
     if jax.process_index() == 0:
         os.makedirs(workdir, exist_ok=True)
         write_bytes(path, json.dumps(to_dict(cfg), indent=2).encode())
+
+
+DATA_FINGERPRINT = "data_fingerprint.json"
+
+
+def check_same_data(workdir: str, stage: str, fingerprint: dict, data: str) -> None:
+    """RunError naming what changed when the run in `workdir` recorded other training data for
+    `stage` than `fingerprint` (`data.fingerprint.data_fingerprint` of `data` now). A run that
+    recorded none (started before fingerprints were kept) is not checked."""
+    from irdepth_jax.data.fingerprint import fingerprint_changes
+
+    path = os.path.join(workdir, DATA_FINGERPRINT)
+    if not os.path.exists(path):
+        return
+    with open(path) as f:
+        recorded = json.load(f).get(stage)
+    changes = fingerprint_changes(recorded or {}, fingerprint)
+    if changes:
+        raise RunError(f"--resume: the dataset changed since this run started ({path}): --data "
+                       f"{data}: {'; '.join(changes)}; resume on the data it started with, or "
+                       "start a new --workdir")
+
+
+def record_data(workdir: str, stage: str, fingerprint: dict) -> None:
+    """Records `fingerprint` as what `stage` of the run in `workdir` trains on (process 0)."""
+    if jax.process_index() != 0:
+        return
+    path = os.path.join(workdir, DATA_FINGERPRINT)
+    doc = {}
+    if os.path.exists(path):
+        with open(path) as f:
+            doc = json.load(f)
+    write_bytes(path, json.dumps({**doc, stage: fingerprint}, indent=1).encode())

@@ -16,6 +16,7 @@ import jax
 import numpy as np
 
 from irdepth_jax.config import Config
+from irdepth_jax.data.fingerprint import data_fingerprint
 from irdepth_jax.data.source import (
     PREPROCESSING,
     BatchStream,
@@ -30,7 +31,7 @@ from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import describe_disk, disk_full
 from irdepth_jax.train.checkpoint import CheckpointError, has_checkpoint, read_meta
 from irdepth_jax.train.phase import Phase, RunOptions, make_parallel, run_phase, steps_for
-from irdepth_jax.train.runlog import RunLog, prepare_workdir
+from irdepth_jax.train.runlog import RunLog, check_same_data, prepare_workdir, record_data
 from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
 from irdepth_jax.train.steps import stage1_loss_fn, stage2_loss_fn
 from irdepth_jax.train.validate import check_run
@@ -89,7 +90,7 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                                            ("stage1_i2", s1.epochs_i2, s1.steps_i2))}
     if opts.resume:
         _check_i2_continues_i1(opts.workdir, totals["stage1_i1"])
-    prepare_workdir(opts.workdir, cfg, opts.resume)
+    _prepare_workdir(opts, cfg, "stage1", source, frames)
     trained_on = source.describe()
     log = RunLog(opts.workdir)
     try:
@@ -126,6 +127,18 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         return {"unet": variables, "steps": done}
     finally:
         log.close()
+
+
+def _prepare_workdir(opts: RunOptions, cfg: Config, stage: str, source: DataSource,
+                     frames: dict) -> None:
+    """`prepare_workdir`, and the fingerprint of the frames `stage` trains on ({phase: (dataset,
+    indices)}) recorded when the run starts, checked on a resume (refused when it changed)."""
+    fingerprint = data_fingerprint(frames)
+    if opts.resume:
+        check_same_data(opts.workdir, stage, fingerprint, source.path)
+    prepare_workdir(opts.workdir, cfg, opts.resume)
+    if not opts.resume:
+        record_data(opts.workdir, stage, fingerprint)
 
 
 def _check_i2_continues_i1(workdir: str, i1_total: int) -> None:
@@ -237,7 +250,7 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     val = source.frames("val", optional=True)
     dp = make_parallel(opts, s2.batch_size, frames={"stage2": len(train_idx)})
     params, depth_init = init_depth(cfg)  # a bad depth.checkpoint is refused before any write
-    prepare_workdir(opts.workdir, cfg, opts.resume)
+    _prepare_workdir(opts, cfg, "stage2", source, {"stage2": (dataset, train_idx)})
     log = RunLog(opts.workdir)
     try:
         log.info("stage2", parallel=dp.describe(), raw_bits=cfg.data.raw_bits)

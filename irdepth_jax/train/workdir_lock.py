@@ -99,8 +99,9 @@ def _alive(pid: int) -> bool:
     return True
 
 
-def acquire(workdir: str) -> str:
-    """Takes the lock of `workdir` (which must exist); returns the lock file's path.
+def acquire(workdir: str, what: str = "workdir") -> str:
+    """Takes the lock of `workdir` (which must exist); returns the lock file's path. `what`
+    names the directory in messages (e.g. "--out folder" for predict's outputs).
 
     Raises WorkdirLocked naming the owner when another live run holds it (or one on another
     host, or an unreadable lock file); takes over, with a note on stderr, the lock of a process
@@ -126,11 +127,11 @@ def acquire(workdir: str) -> str:
             owner = json.loads(text)
             pid, host = int(owner["pid"]), str(owner["host"])
         except (ValueError, KeyError, TypeError):
-            raise WorkdirLocked(f"workdir {workdir} has an unreadable lock file {path}; delete "
-                                "it if no run is using this workdir") from None
+            raise WorkdirLocked(f"{what} {workdir} has an unreadable lock file {path}; delete "
+                                f"it if no run is using this {what}") from None
         if host != socket.gethostname() or _alive(pid):
             raise WorkdirLocked(
-                f"workdir {workdir} is in use by another run (pid {pid} on {host}, lock "
+                f"{what} {workdir} is in use by another run (pid {pid} on {host}, lock "
                 f"{path}); wait for it to end, or delete the lock if that run is gone")
         with contextlib.suppress(FileNotFoundError):
             with open(path) as f:
@@ -139,7 +140,7 @@ def acquire(workdir: str) -> str:
                 os.remove(path)
                 print(f"irdepth: taking over the lock {path} of pid {pid} on {host}, which no "
                       "longer runs", file=sys.stderr, flush=True)
-    raise WorkdirLocked(f"workdir {workdir}: could not take the lock {path} (another run keeps "
+    raise WorkdirLocked(f"{what} {workdir}: could not take the lock {path} (another run keeps "
                         "taking it)")
 
 
