@@ -311,7 +311,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
                   f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
                   "a scale it did not see in training", file=sys.stderr)
-    _say_what_it_was_trained_on(path, model["trained_on"],
+    _say_what_it_was_trained_on(path, model.get("trained_on"),
                                 {shape for sequence in found for shape, _ in sequence.shapes})
     if model["depth"] is not None and not cfg.depth.metric:
         print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
@@ -354,9 +354,12 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
 
 def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
     """Prints (stderr) what the model was trained on, and a warning for each way the inputs
-    differ from it in kind (`train.variables.input_warnings`)."""
+    differ from it in kind (`train.variables.input_warnings`); nothing for a checkpoint that
+    did not record it."""
     from irdepth_jax.train.variables import describe_trained_on, input_warnings
 
+    if trained_on is None:
+        return
     print(f"irdepth: model {path}: {describe_trained_on(trained_on)}", file=sys.stderr)
     for line in input_warnings(trained_on, shapes):
         print(f"irdepth: WARNING: {line}", file=sys.stderr)
