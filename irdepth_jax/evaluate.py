@@ -69,8 +69,8 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                                       else "the folder dataset's depth/"),
                      "reconstruction": (None if source.format == "ms2"
                                         else "the dataset's 8-bit camera image (ir8)")},
-        "segmentation_branch": model["segmentation"], "trained_on": model["trained_on"],
-        "warnings": input_warnings(model["trained_on"], {tuple(described["frame_size"])},
+        "segmentation_branch": model["segmentation"], "trained_on": model.get("trained_on"),
+        "warnings": input_warnings(model.get("trained_on"), {tuple(described["frame_size"])},
                                    described["kind"])}
     if model["unet"] is not None:
         result["stage1"] = evaluate_stage1(cfg, model["unet"], dataset, indices, dp,

@@ -9,8 +9,8 @@ it compiles once.
 Per frame ``NAME`` (PNG mode): ``NAME_depth.png`` (16-bit, metres x 256; a relative-depth model
 writes ``NAME_depth_relative.png``, depth x 256 up to an unknown scale),
 ``NAME_depth_color.png`` and, for models with a UNet, ``NAME_rgb.png`` (pseudo-RGB) and
-``NAME_hsv.png`` (H, S, V as its 8-bit R, G, B channels). Video mode (``--video``): one ``NAME.mp4`` per
-sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
+``NAME_hsv.png`` (H, S, V as its 8-bit R, G, B channels). Video mode (``--video``): one
+``NAME.mp4`` per sequence (a folder of frames, a multi-page TIFF, an (N, H, W) .npy, a FLIR .seq) showing
 raw tone-mapped | pseudo-RGB of the HSV image | coloured depth side by side, and with
 ``--depth-png`` the 16-bit depth PNGs of its frames too.
 """
@@ -31,6 +31,7 @@ from irdepth_jax.data.loader import prefetch
 from irdepth_jax.depth_colours import DepthColours, depth_colours
 from irdepth_jax.errors import RunError
 from irdepth_jax.fileio import make_dirs, write_bytes, write_png
+from irdepth_jax.pointcloud import parse_intrinsics, point_cloud_ply
 from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
 
@@ -47,10 +48,7 @@ WRITERS = 2
 
 def colorize_depth(depth: np.ndarray, max_depth: float) -> np.ndarray:
     """Depth (H, W) metres -> (H, W, 3) uint8 RGB (matplotlib 'turbo', near = red)."""
-    from matplotlib import colormaps
-
-    x = 1.0 - np.clip(depth / max(max_depth, 1e-6), 0.0, 1.0)
-    return (colormaps["turbo"](x)[..., :3] * 255).astype(np.uint8)
+    return DepthColours(0.0, max_depth).colorize(depth, 0.0, max_depth)
 
 
 def display_raw(raw: np.ndarray, bits: int) -> np.ndarray:
@@ -304,8 +302,6 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                        "the image; it predicts the same depth for every frame")
     camera = None
     if intrinsics is not None:
-        from irdepth_jax.pointcloud import parse_intrinsics
-
         camera = parse_intrinsics(intrinsics)
         if video or model["depth"] is None:
             raise RunError("--pointcloud: per-frame point clouds of a depth model (not with "
@@ -324,7 +320,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
             print(f"irdepth: note: {path} was trained on {trained_bits}-bit counts with "
                   f"unet.raw_scale=fixed; --raw-bits {bits} feeds it counts / {2**bits - 1}, "
                   "a scale it did not see in training", file=sys.stderr)
-    _say_what_it_was_trained_on(path, model["trained_on"],
+    _say_what_it_was_trained_on(path, model.get("trained_on"),
                                 {shape for sequence in found for shape, _ in sequence.shapes})
     if model["depth"] is not None and not cfg.depth.metric:
         print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
@@ -357,8 +353,6 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                 for kind, image in output_pngs(images, colours, depth_suffix(cfg)).items():
                     writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
                 if camera is not None:
-                    from irdepth_jax.pointcloud import point_cloud_ply
-
                     colors = _to8(images["rgb"]) if "rgb" in images else display_raw(frame.raw, bits)
                     writers.submit_bytes(os.path.join(out_dir, f"{frame.name}.ply"),
                                          point_cloud_ply(images["depth"], colors, camera))
@@ -376,9 +370,12 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
 
 def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
     """Prints (stderr) what the model was trained on, and a warning for each way the inputs
-    differ from it in kind (`train.variables.input_warnings`)."""
+    differ from it in kind (`train.variables.input_warnings`); nothing for a checkpoint that
+    did not record it."""
     from irdepth_jax.train.variables import describe_trained_on, input_warnings
 
+    if trained_on is None:
+        return
     print(f"irdepth: model {path}: {describe_trained_on(trained_on)}", file=sys.stderr)
     for line in input_warnings(trained_on, shapes):
         print(f"irdepth: WARNING: {line}", file=sys.stderr)

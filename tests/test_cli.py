@@ -230,9 +230,10 @@ def test_stage2_eval_and_predict(data, stage2_run, tmp_path, capsys, monkeypatch
     assert {"psnr", "ssim", "entropy", "miou"} <= set(table["stage1"]["all"])
     assert "| all |" in (work / "eval_test.md").read_text() and "abs_rel" in out
     test_frames = len(DataSource(str(data)).frames("test")[1])
-    ir8 = "the dataset's 8-bit camera image (ir8)"
+    labels = {"depth": "metric", "reconstruction": "the dataset's 8-bit camera image (ir8)",
+              "ground_truth": "the folder dataset's depth/"}
     assert table["protocol"] == {"stride": 1, "frames": test_frames, "align": "none",
-                                 "clamp": [1e-3, 80.0], "depth": "metric", "reconstruction": ir8}
+                                 "clamp": [1e-3, 80.0], **labels}
     assert table["stage2"]["all"]["nonfinite_images"] == 0 and "WARNING" not in err
 
     # A model predicting NaN is reported loudly, not scored (d1 = 0, silog = 0 before).
@@ -250,7 +251,7 @@ def test_stage2_eval_and_predict(data, stage2_run, tmp_path, capsys, monkeypatch
     nan = json.loads((tmp_path / "nan" / "eval_test.json").read_text())
     frames = len(range(test_frames)[0:-1:2])
     assert nan["protocol"] == {"stride": 2, "frames": frames, "align": "median",
-                               "clamp": [1e-3, 80.0], "depth": "metric", "reconstruction": ir8}
+                               "clamp": [1e-3, 80.0], **labels}
     assert nan["stage2"]["all"]["nonfinite_images"] == frames
     assert np.isnan(nan["stage2"]["all"]["d1"]) and np.isnan(nan["stage2"]["all"]["silog"])
     assert [ln for ln in err.splitlines() if "non-finite" in ln] == [
