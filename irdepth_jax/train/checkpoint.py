@@ -303,7 +303,8 @@ def _check_finite(items: Mapping[str, Any], where: str) -> None:
         if not jnp.issubdtype(jnp.result_type(leaf), jnp.inexact):
             continue
         total += int(np.size(leaf))
-        count = int(np.size(leaf) - jnp.count_nonzero(jnp.isfinite(leaf)))
+        # on the host: one numpy pass per leaf (a jnp op per leaf shape compiled each run)
+        count = int(np.size(leaf) - np.count_nonzero(np.isfinite(np.asarray(leaf))))
         if count:
             item, *names = [n for n in path_to_str(path).split("/")
                             if n not in ("params", "batch_stats")]
@@ -328,6 +329,8 @@ def _abstract(tree: Any) -> Any:
     default = jax.sharding.SingleDeviceSharding(jax.local_devices()[0])
 
     def spec(x):
+        if isinstance(x, jax.ShapeDtypeStruct):
+            return jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=x.sharding or default)
         sharding = x.sharding if isinstance(x, jax.Array) else default
         return jax.ShapeDtypeStruct(np.shape(x), np.asarray(x).dtype if not isinstance(
             x, jax.Array) else x.dtype, sharding=sharding)

@@ -53,6 +53,18 @@ def random_depth(cfg: Config) -> dict:
                        init_key(cfg.seed + 1))
 
 
+def unet_shapes(cfg: Config) -> dict:
+    """`init_unet`'s tree as ShapeDtypeStructs (traced, not compiled or run): the template a
+    Stage I model is restored into."""
+    return jax.eval_shape(lambda: init_unet(cfg))
+
+
+def depth_shapes(cfg: Config) -> dict:
+    """`random_depth`'s tree as ShapeDtypeStructs: the template Depth Anything V2 params are
+    restored into."""
+    return jax.eval_shape(lambda: random_depth(cfg))
+
+
 def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
     """Stage II's starting Depth Anything V2 params and a description of where they came from.
 
@@ -132,7 +144,7 @@ def _depth_of_run(path: str, cfg: Config) -> tuple[Any, dict]:
     if run_cfg.depth.encoder != cfg.depth.encoder:
         raise RunError(f"depth.checkpoint {path}: trained with depth.encoder="
                        f"{run_cfg.depth.encoder}, this run has depth.encoder={cfg.depth.encoder}")
-    template = jax.eval_shape(lambda: random_depth(cfg))  # shapes only: nothing compiled
+    template = depth_shapes(cfg)
     shapes = [jax.tree_util.tree_structure(template), jax.tree_util.tree_structure(model["depth"])]
     if shapes[0] != shapes[1] or any(
             a.shape != b.shape for a, b in zip(jax.tree.leaves(template), jax.tree.leaves(model["depth"]))):
@@ -190,7 +202,7 @@ def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
     or trained on raw counts of another bit depth than `cfg.data.raw_bits`."""
     try:
         directory, stage = find_checkpoint(path, STAGE1_STAGES)
-        items, meta = restore_items(directory, stage, {"model": init_unet(cfg)})
+        items, meta = restore_items(directory, stage, {"model": unet_shapes(cfg)})
         unet = dict(items["model"])
     except CheckpointError as err:
         raise RunError(f"--stage1-checkpoint: {err}") from None
@@ -282,13 +294,13 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
         if stage == "stage1_i1":
             segmentation = {"labeled_frames": 0, "why": "Stage I-1 only (no I-2 checkpoint)"}
         if stage.startswith("stage1"):
-            items, _ = restore_items(directory, stage, {"model": init_unet(cfg)})
+            items, _ = restore_items(directory, stage, {"model": unet_shapes(cfg)})
             return cfg, stage, {"unet": dict(items["model"]), "depth": None,
                                 "segmentation": segmentation, "trained_on": trained_on}
-        templates = {"model": {"params": random_depth(cfg), "batch_stats": {}}}
+        templates = {"model": {"params": depth_shapes(cfg), "batch_stats": {}}}
         has_unet = cfg.stage2.preprocessing == "hsv" or cfg.stage2.sky_loss
         if has_unet:
-            templates["frozen"] = {"unet": init_unet(cfg)}
+            templates["frozen"] = {"unet": unet_shapes(cfg)}
         items, _ = restore_items(directory, stage, templates)
     except CheckpointError as err:
         raise RunError(str(err)) from None
