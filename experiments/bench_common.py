@@ -42,8 +42,8 @@ def wall_seconds(fn) -> float:
     return time.perf_counter() - start
 
 
-def interleaved_medians(timers, repeats: int, warmup: int = 1) -> list[float]:
-    """Median seconds of each timer over `repeats` rounds that call them in turn (A, B, A, B,
+def interleaved_samples(timers, repeats: int, warmup: int = 1) -> list[list[float]]:
+    """Seconds of each timer in each of `repeats` rounds that call them in turn (A, B, A, B,
     ...), after `warmup` rounds. A timer is a zero-argument callable that runs one call and
     returns its seconds (`functools.partial(wall_seconds, fn)`, `functools.partial(worker.time,
     name)`)."""
@@ -54,7 +54,29 @@ def interleaved_medians(timers, repeats: int, warmup: int = 1) -> list[float]:
     for _ in range(repeats):
         for timer, t in zip(timers, times):
             t.append(timer())
-    return [float(np.median(t)) for t in times]
+    return times
+
+
+def interleaved_medians(timers, repeats: int, warmup: int = 1) -> list[float]:
+    """Median seconds of each timer over `interleaved_samples`' rounds."""
+    return [float(np.median(t)) for t in interleaved_samples(timers, repeats, warmup)]
+
+
+def spread(samples) -> dict:
+    """Median, min, max and the max / min - 1 spread (in %) of one timer's seconds."""
+    lo, hi = float(np.min(samples)), float(np.max(samples))
+    return {"median": float(np.median(samples)), "min": lo, "max": hi, "spread_pct": 100 * (hi / lo - 1)}
+
+
+def torch_flops(fn) -> float:
+    """FLOPs of one call of the zero-argument callable `fn` (torch work) as
+    `torch.utils.flop_counter` counts them: 2 per multiply-add of convolutions and matrix
+    products (forward and backward), elementwise work not counted."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    with FlopCounterMode(display=False) as counter:
+        fn()
+    return float(counter.get_total_flops())
 
 
 class Worker:
@@ -84,11 +106,11 @@ class Worker:
                                         args=(child, setup, args, kwargs, keep_memory), daemon=True)
         # The child inherits the environment when it starts, before it imports anything:
         # PJRT_NPROC is read when JAX's CPU client starts, OMP_NUM_THREADS when torch's OpenMP
-        # runtime loads; OpenMP's threads wait passively (the other process computes meanwhile);
-        # on a GPU, JAX takes memory as it needs it instead of 75 % of it up front, so that the
-        # other side's process fits beside it.
+        # runtime loads: both sides get the same thread count, and nothing else is set for one
+        # side only (OpenMP's wait policy stays the runtime's default or the caller's); on a GPU,
+        # JAX takes memory as it needs it instead of 75 % of it up front, so that the other
+        # side's process fits beside it.
         settings = {"PJRT_NPROC": str(threads), "OMP_NUM_THREADS": str(threads),
-                    "OMP_WAIT_POLICY": os.environ.get("OMP_WAIT_POLICY", "PASSIVE"),
                     "XLA_PYTHON_CLIENT_PREALLOCATE": "false"}
         saved = {k: os.environ.get(k) for k in settings}
         os.environ.update(settings)
@@ -230,9 +252,11 @@ def usable_cpus() -> int:
 def set_xla_threads(threads: int) -> None:
     """Gives XLA's CPU client `threads` intra-op threads (PJRT_NPROC, read when it starts); call
     before JAX's first computation."""
-    from jax._src import xla_bridge
-
-    if xla_bridge.backends_are_initialized() and os.environ.get("PJRT_NPROC") != str(threads):
+    try:  # private, checked where it exists
+        from jax._src.xla_bridge import backends_are_initialized
+    except ImportError:
+        backends_are_initialized = lambda: False  # noqa: E731
+    if backends_are_initialized() and os.environ.get("PJRT_NPROC") != str(threads):
         print(f"warning: JAX already started; XLA keeps its thread pool, not --threads {threads}")
     os.environ["PJRT_NPROC"] = str(threads)
 

@@ -3,12 +3,13 @@ forward latency per input size against transformers and the official code, and o
 training step (SiLog + AdamW, metric head) against the official metric-depth model.
 
     python experiments/bench_depth_anything.py --encoder vits --sizes 518x518 364x644 \\
-        --train-batch 2 --official-repo PATH/TO/Depth-Anything-V2 --threads 2 \\
-        --json experiments/results/bench_depth_anything.json
+        --train-batch 2 --threads 2 --json experiments/results/bench_depth_anything.json
 
 --official-repo: a checkout of github.com/DepthAnything/Depth-Anything-V2 (the official code is
-not a package; its `metric_depth/depth_anything_v2` is imported from there). Without it only
-transformers is compared (forward only: transformers has no metric-training step to compare).
+not a package; its `metric_depth/depth_anything_v2` is imported from there); default
+experiments/third_party/Depth-Anything-V2 or $IRDEPTH_OFFICIAL_DA (`OFFICIAL_REPO`; never
+committed). --references official (or transformers) compares against that one only; the train
+step runs against the official code when it is a reference, else against transformers' port.
 Needs the [parity] extra (torch + transformers); --no-torch times ours only.
 
 Weights: a random transformers model (experiments/torch_reference.py), saved and imported by
@@ -61,12 +62,25 @@ from irdepth_jax.losses import silog_loss
 from irdepth_jax.models.depth_anything import DepthAnythingV2, depth_anything_config
 from irdepth_jax.weights import load_depth_anything
 
+OFFICIAL_REPO = os.environ.get("IRDEPTH_OFFICIAL_DA", os.path.join(
+    os.path.dirname(os.path.abspath(__file__)), "third_party", "Depth-Anything-V2"))
+"""Where the official code is looked for: a checkout of github.com/DepthAnything/Depth-Anything-V2
+(never committed here: experiments/third_party/ is git-ignored; a device run carries it) or the
+folder IRDEPTH_OFFICIAL_DA names. Without it the PyTorch side is transformers' port."""
+
+
+def official_code_present(repo: str = OFFICIAL_REPO) -> bool:
+    """Whether `repo` holds the official metric-depth model code."""
+    return os.path.isfile(os.path.join(repo, "metric_depth", "depth_anything_v2", "dpt.py"))
 MAX_DEPTH = 80.0
 ADAMW = {"learning_rate": 5e-6, "weight_decay": 0.01}
 
 
 def official_metric_model(repo: str, cfg, state_dict):
     """The official metric-depth DepthAnythingV2 of the checkout `repo`, with `state_dict`."""
+    if not official_code_present(repo):
+        raise SystemExit(f"--official-repo {repo}: no official Depth Anything V2 code there (a checkout of "
+                         "github.com/DepthAnything/Depth-Anything-V2; or IRDEPTH_OFFICIAL_DA=DIR)")
     if cfg.encoder not in ("vits", "vitb", "vitl", "vitg"):
         raise SystemExit(f"--official-repo: the official code builds vits/vitb/vitl/vitg, not {cfg.encoder!r}")
     sys.path.insert(0, os.path.join(repo, "metric_depth"))  # the official code is not a package
@@ -108,9 +122,12 @@ def silog_loss_torch(pred, depth, valid, lambd: float = 0.5):
     return torch.sqrt((d**2).mean() - lambd * d.mean() ** 2)
 
 
-def torch_train_step(model, amp: bool):
-    """The official side: `silog_loss_torch`, torch.optim.AdamW."""
+def torch_train_step(model, amp: bool, forward=None):
+    """The PyTorch side's train step: `silog_loss_torch` of `forward(images)` (default
+    `model(images)`, the official model's call), torch.optim.AdamW."""
     import torch
+
+    forward = forward or model
 
     optimizer = torch.optim.AdamW(model.parameters(), lr=ADAMW["learning_rate"],
                                   weight_decay=ADAMW["weight_decay"])
@@ -120,7 +137,7 @@ def torch_train_step(model, amp: bool):
         model.train()
         optimizer.zero_grad(set_to_none=True)
         with torch.autocast(device_type, dtype=torch.bfloat16, enabled=amp):
-            pred = model(images)
+            pred = forward(images)
         loss = silog_loss_torch(pred.float(), depth, valid)
         loss.backward()
         optimizer.step()
@@ -160,7 +177,7 @@ def setup_ours(weights: str | None, encoder: str, mode: str, dtype: str, remat: 
     if weights:
         _, params = load_depth_anything(weights, kind="metric", max_depth=MAX_DEPTH)
     else:
-        x0 = jnp.zeros((1, *sizes[0], 3), jnp.float32)
+        x0 = jnp.zeros((1, *(sizes[0] if sizes else train_size), 3), jnp.float32)
         params = jax.jit(model.init)(jax.random.key(0), x0)["params"]
     calls, info = {}, {}
     for size, array in images.items():
@@ -184,9 +201,10 @@ def setup_ours(weights: str | None, encoder: str, mode: str, dtype: str, remat: 
 
 def setup_reference(kind: str, weights: str, official_repo: str | None, encoder: str, amp: bool,
                     sizes, batch: int, train_size, train_batch: int, peak_size: int):
-    """`Worker` set-up of a PyTorch side, `kind` 'transformers' (forward only) or 'official'
-    (the official metric model, `official_repo`; forward and 'train'), with the weights saved
-    at `weights`; on CUDA when torch sees a GPU. The same call names as `setup_ours`."""
+    """`Worker` set-up of a PyTorch side, `kind` 'transformers' (its port) or 'official' (the
+    official metric model, `official_repo`), forward and (train_batch > 0) 'train', with the
+    weights saved at `weights`; on CUDA when torch sees a GPU. The same call names as
+    `setup_ours`."""
     import torch
     from transformers import DepthAnythingForDepthEstimation
 
@@ -212,10 +230,11 @@ def setup_reference(kind: str, weights: str, official_repo: str | None, encoder:
     for size, array in images.items():
         pixels = torch.from_numpy(np.ascontiguousarray(array.transpose(0, 3, 1, 2))).to(device)
         calls[forward_name(size)] = functools.partial(forward, pixels)
-    if kind == "official" and train_batch:
+    if train_batch:
         x, depth, valid = (torch.from_numpy(np.ascontiguousarray(a)).to(device)
                            for a in (train[0].transpose(0, 3, 1, 2), *train[1:]))
-        step = torch_train_step(model, amp)
+        step = torch_train_step(model, amp, None if kind == "official" else
+                                lambda pixels: model(pixel_values=pixels).predicted_depth)
         calls["train"] = lambda: step(x, depth, valid)
     calls["matmul"] = matmul_call(peak_size, "torch", "bfloat16" if amp else "float32", device)
     return calls, {"threads": torch.get_num_threads(), "torch_device": device}
@@ -235,8 +254,8 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoder", default="vits", help="vits | vitb | vitl | vitg | small | tiny")
-    parser.add_argument("--sizes", nargs="+", type=parse_size, default=[(518, 518), (364, 644)],
-                        help="HxW input sizes, multiples of 14")
+    parser.add_argument("--sizes", nargs="*", type=parse_size, default=[(518, 518), (364, 644)],
+                        help="HxW forward input sizes, multiples of 14 (none: the train step only)")
     parser.add_argument("--batch", type=int, default=1, help="images per forward call")
     parser.add_argument("--train-batch", type=int, default=2, help="images per train step (0: none)")
     parser.add_argument("--train-size", type=parse_size, default=(518, 518), help="train-step HxW")
@@ -244,7 +263,13 @@ def main(argv=None) -> dict:
                         help="our compute dtype (params stay float32)")
     parser.add_argument("--amp", action="store_true", help="torch autocast bf16 (the official side)")
     parser.add_argument("--remat", action="store_true", help="rematerialise our ViT blocks")
-    parser.add_argument("--official-repo", metavar="DIR", help="checkout of the official code")
+    parser.add_argument("--official-repo", metavar="DIR", default=OFFICIAL_REPO,
+                        help="checkout of the official code (default: experiments/third_party/"
+                             "Depth-Anything-V2 or $IRDEPTH_OFFICIAL_DA; not committed)")
+    parser.add_argument("--references", nargs="+", choices=("transformers", "official"),
+                        default=["transformers", "official"],
+                        help="the PyTorch sides to compare with; the train step runs against the "
+                             "official code when it is one of them, else against transformers")
     parser.add_argument("--warmup", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--threads", type=int, default=usable_cpus(),
@@ -267,9 +292,8 @@ def main(argv=None) -> dict:
                  train_batch=args.train_batch, peak_size=args.peak_size)
     # ours against the official code uses its position-embedding resampling, against
     # transformers the transformers one: every pair computes the same function
-    refs = {"transformers": "transformers", "official": "official"} if with_torch else {"none": "official"}
-    if with_torch and not args.official_repo:
-        del refs["official"]
+    refs = {name: name for name in args.references} if with_torch else {"none": "official"}
+    train_ref = ("official" if "official" in refs else "transformers") if with_torch else "none"
     rows = []
     with tempfile.TemporaryDirectory() as weights, contextlib.ExitStack() as stack:
         if with_torch:
@@ -280,13 +304,13 @@ def main(argv=None) -> dict:
         for ref_name, mode in refs.items():
             ours = stack.enter_context(Worker(
                 setup_ours, weights if with_torch else None, args.encoder, mode, args.dtype,
-                args.remat, **{**shape, "train_batch": shape["train_batch"] if mode == "official" else 0},
+                args.remat, **{**shape, "train_batch": shape["train_batch"] if ref_name == train_ref else 0},
                 threads=args.threads, keep_memory=not args.default_malloc))
             sides = [ours]
             if with_torch:
                 sides.append(stack.enter_context(Worker(
                     setup_reference, ref_name, weights, args.official_repo, args.encoder, args.amp,
-                    **{**shape, "train_batch": shape["train_batch"] if ref_name == "official" else 0},
+                    **{**shape, "train_batch": shape["train_batch"] if ref_name == train_ref else 0},
                     threads=args.threads, keep_memory=not args.default_malloc)))
             if "matmul_peak" not in summary:
                 seconds = interleaved_medians([functools.partial(s.time, "matmul") for s in sides],
@@ -302,7 +326,7 @@ def main(argv=None) -> dict:
                                   if k.endswith("gflops")))
             sizes = {forward_name(size): size for size in args.sizes}
             names = list(sizes)
-            if args.train_batch and mode == "official":
+            if args.train_batch and ref_name == train_ref:
                 names.append("train")
             for name in names:
                 diff = None

@@ -59,9 +59,14 @@ class _FakeWorker:
     alive = 0
     most_alive = 0
 
-    def __init__(self, setup, *args, threads, keep_memory=True):
+    torch_flops = {"fwd_torch_flops": 1.96e9, "train_torch_flops": 5.9e9}
+
+    def __init__(self, setup, *args, threads, keep_memory=True, **kwargs):
         self.name = setup.__name__
+        self.kwargs = kwargs
         self.info = {"fwd_flops": 2e9, "train_flops": 6e9, "threads": threads}
+        if self.name == "setup_twin":
+            self.info.update(self.torch_flops)
 
     def __enter__(self):
         type(self).alive += 1
@@ -97,6 +102,19 @@ def test_unet_benchmark_one_at_a_time_never_holds_both_sides(monkeypatch, one_at
     assert result["fwd_max_abs_diff"] == pytest.approx(1e-3)
     assert result["train_ours_gflops"] == pytest.approx(3.0)
     assert result["matmul_peak"]["torch_gflops"] == pytest.approx(2 * 64**3 / 0.125 / 1e9)
+    assert result["fwd_xla_over_torch_flops"] == pytest.approx(2 / 1.96)
+    assert result["train_ours_seconds"]["spread_pct"] == pytest.approx(0.0)
+
+
+def test_unet_benchmark_refuses_unequal_work(monkeypatch):
+    from experiments import bench_unet
+
+    monkeypatch.setattr(bench_unet, "Worker", _FakeWorker)
+    # the opponent counts 20 % fewer train-step FLOPs than XLA: not the same work
+    monkeypatch.setattr(_FakeWorker, "torch_flops", {"fwd_torch_flops": 2e9, "train_torch_flops": 5e9})
+    with pytest.raises(RuntimeError, match="unequal work: train"):
+        bench_unet.bench_case(("tiny", True), (4, 4), 1, repeats=1, warmup=0, threads=2,
+                              with_torch=True, peak_size=None)
 
 
 def test_bounds_work_out_the_rate_a_target_needs():
