@@ -25,7 +25,7 @@ FLOP count as GFLOP/s and % of the measured matmul peak (an N x N matmul in --dt
 same device: on a GPU, the fraction is the step's MFU against what the chip's matmul reaches).
 
 GPU: the same command on a CUDA machine, with --dtype bfloat16 (our compute dtype; params stay
-float32) and --amp (torch autocast bf16 on the official side); see README "Benchmarks".
+float32) and --amp (torch autocast bf16 on the official side); see docs/benchmarks.md.
 """
 
 from __future__ import annotations

@@ -114,7 +114,7 @@ def _claims() -> tuple[Claim, ...]:
 
 
 CLAIMS = _claims()
-"""The paper's comparisons, checked by `check_claims` (notebooks/ablations.ipynb, README)."""
+"""The paper's comparisons, checked by `check_claims` (notebooks/ablations.ipynb, docs/experiments.md)."""
 
 
 # --------------------------------------------------------------------------- statistics

@@ -6,7 +6,7 @@ IR = our pipeline (HSV pseudo-RGB of the raw frame); RGB = the same Stage II tra
 aligned visible image (`stage2.preprocessing=rgb`). Metrics per lighting condition of the test
 split. Needs a dataset with aligned RGB images (the synthetic benchmark has them).
 
-Two controls trace what the depth network gets from each input (the README's reading of this
+Two controls trace what the depth network gets from each input (docs/experiments.md's reading of this
 table): 'blank' trains the same Stage II on a constant grey image, so its metrics are what the
 scene layout alone gives (no image information); the median-scaled rows are the IR and RGB runs
 with each prediction scaled by median(gt) / median(pred), which removes a per-image error of

@@ -352,8 +352,8 @@ def quickstart_next_steps(work: str, cfg) -> list[str]:
         f"{work}/stage1 and {work}/stage2: a {cfg.name} model trained on synthetic frames, its "
         "depth network from random weights. It shows the pipeline runs; its depth on real "
         "camera frames means nothing (predict and eval warn so).",
-        "Next, a model for real frames: MS2 (or a folder dataset, README 'Data: our folder "
-        "format': --data FOLDER) and the released Depth Anything V2 weights "
+        "Next, a model for real frames: MS2 (or a folder dataset, docs/data.md: --data "
+        "FOLDER) and the released Depth Anything V2 weights "
         "(depth_anything_v2_metric_vkitti_vits.pth):",
         "  irdepth train stage1 --preset paper --data MS2_ROOT --workdir runs/s1 "
         "stage1.seg_labels=synthetic",

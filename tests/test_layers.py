@@ -1,4 +1,4 @@
-"""The package's data flow is one way (README "Architecture"): no module imports one of a later
+"""The package's data flow is one way (docs/architecture.md): no module imports one of a later
 layer, at the top of the file or inside a function, and there is no import cycle."""
 
 import ast

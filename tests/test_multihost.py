@@ -113,7 +113,7 @@ def _cli_processes(runs, tmp_path, returncode=0):
 
 @pytest.mark.multidevice
 def test_cli_train_on_two_processes_equals_one_process_with_two_devices(synthetic_data, tmp_path):
-    """README's cluster command on localhost: `irdepth train --coordinator ... --num-processes 2
+    """docs/usage.md's cluster command on localhost: `irdepth train --coordinator ... --num-processes 2
     --process-id i` (one CPU device each, one shared workdir) trains Stage I-1 to the same losses
     and weights as one process with `--devices 2`. The three processes run at once, and stop
     (`--stop-at`) after I-1, whose checkpoint is compared: I-2 runs the same parallel code."""

@@ -13,7 +13,7 @@ def get_config() -> Config:
     ``irdepth train stage2 --preset paper --data DIR --workdir runs/s2 --stage1-checkpoint
     runs/s1``.
 
-    Measured: not timed end to end. On a 2-core CPU (README, "Benchmarks") one Stage I train step
+    Measured: not timed end to end. On a 2-core CPU (docs/benchmarks.md) one Stage I train step
     of its MTSA-UNet at batch 1 takes 1.6 s at 256x320 (``python experiments/bench_unet.py
     --preset paper``), so its 50-epoch stages are impractical without an accelerator.
     """
