@@ -73,22 +73,46 @@ class Predictor:
 
     def __init__(self, cfg: Config, model: dict, bits: int):
         self.cfg, self.model, self.bits = cfg, model, bits
+        self._compiled: dict[tuple, object] = {}
         if model["depth"] is None:  # a Stage I model: its HSV images, no depth
             self.cfg = dataclasses.replace(
                 cfg, stage2=dataclasses.replace(cfg.stage2, preprocessing="hsv"))
 
-    def dispatch(self, raw: np.ndarray) -> dict:
-        """Starts the model on raw (B, H, W) uint16 (JAX runs it asynchronously); returns the
-        device outputs (`run_pipeline`'s dict) to pass to `fetch`."""
+    def _arguments(self, raw: np.ndarray) -> tuple[tuple, dict]:
         import jax.numpy as jnp
 
         from irdepth_jax.data.source import host_image
-        from irdepth_jax.models.pipeline import run_pipeline
 
         image = host_image({"raw14": raw}, self.cfg.stage2.preprocessing, self.bits)
         unet = self.model["unet"]
-        return run_pipeline(unet, self.model["depth"], None if unet is None else jnp.asarray(raw),
-                            self.cfg, image=None if image is None else jnp.asarray(image))
+        return ((unet, self.model["depth"], None if unet is None else jnp.asarray(raw)),
+                {"image": None if image is None else jnp.asarray(image)})
+
+    def prepare(self, batch: int, shape: tuple[int, int]) -> None:
+        """Compiles the pipeline for (batch, H, W) frames and refuses (RunError) a size whose
+        memory, by XLA's estimate for the compiled program, exceeds what the device has free:
+        before any frame is run, instead of the kernel killing the process minutes later."""
+        if (batch, *shape) in self._compiled:
+            return
+        from irdepth_jax.models.pipeline import run_pipeline
+
+        args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
+        compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
+        need, free = program_bytes(compiled), available_bytes()
+        if need is not None and free is not None and need > free:
+            frames = f"a batch of {batch} frames" if batch > 1 else "one frame"
+            advice = "--batch-size 1, or " if batch > 1 else ""
+            raise RunError(f"{frames} of {shape[0]}x{shape[1]} needs about {_bytes(need)} (XLA's "
+                           f"estimate for the compiled model), more than the {_bytes(free)} free "
+                           f"here; use {advice}smaller frames (crop or resize them)")
+        self._compiled[(batch, *shape)] = compiled
+
+    def dispatch(self, raw: np.ndarray) -> dict:
+        """Starts the model on raw (B, H, W) uint16 (JAX runs it asynchronously); returns the
+        device outputs (`run_pipeline`'s dict) to pass to `fetch`."""
+        self.prepare(raw.shape[0], raw.shape[1:])
+        args, kwargs = self._arguments(raw)
+        return self._compiled[raw.shape](*args, **kwargs)
 
     def fetch(self, out: dict) -> dict[str, np.ndarray]:
         """The host arrays of `dispatch`'s outputs: 'depth' (B, H, W) metres of a depth model;
@@ -180,6 +204,42 @@ def batches(frames: Iterator[Frame], sizes: dict) -> Iterator[tuple[list[Frame],
     for shape, group in pending.items():
         n = len(group)
         yield group + [group[-1]] * (sizes[shape] - n), n
+
+
+def program_bytes(compiled) -> int | None:
+    """Bytes a compiled JAX program holds while it runs (arguments, outputs and temporaries,
+    by XLA's memory analysis), or None where the backend does not say."""
+    try:
+        m = compiled.memory_analysis()
+        return int(m.argument_size_in_bytes + m.output_size_in_bytes + m.temp_size_in_bytes
+                   - m.alias_size_in_bytes)
+    except (AttributeError, NotImplementedError, TypeError):
+        return None
+
+
+def _bytes(n: int) -> str:
+    return f"{n / 2**30:.1f} GiB" if n >= 2**30 else f"{n / 2**20:.0f} MiB"
+
+
+def available_bytes() -> int | None:
+    """Free memory of the device JAX runs on: a GPU's free bytes, or on the CPU the host's
+    MemAvailable (Linux); None when unknown."""
+    import jax
+
+    device = jax.devices()[0]
+    if device.platform != "cpu":
+        stats = device.memory_stats() or {}
+        if "bytes_limit" in stats:
+            return int(stats["bytes_limit"] - stats.get("bytes_in_use", 0))
+        return None
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
 
 
 def batch_sizes(found: Sequence[ThermalInput], batch_size: int) -> dict:
@@ -332,9 +392,11 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
               + ("its videos show raw | pseudo-RGB, no depth" if video else
                  "writing its pseudo-RGB and HSV images (NAME_rgb.png, NAME_hsv.png) only; "
                  "give a Stage II run for depth"), file=sys.stderr)
+    predictor = Predictor(cfg, model, bits)
+    for shape, batch in batch_sizes(found, batch_size).items():  # a size too large: refused now
+        predictor.prepare(batch, shape)
     make_dirs(out_dir)
     lock = acquire(out_dir, "--out folder")  # one run per folder: a frame's files are one run's
-    predictor = Predictor(cfg, model, bits)
     from tqdm.auto import tqdm
 
     bar = tqdm(total=sum(f.frames for f in found), unit="frame", disable=not progress,

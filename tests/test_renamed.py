@@ -143,7 +143,7 @@ def test_cli_config_files_with_the_old_key(tmp_path, capsys):
 def test_cli_prints_the_deprecation_in_one_line(tmp_path, capsys):
     from irdepth_jax import cli
 
-    code = cli.main(["train", "stage1", "--data", str(tmp_path / "none"), "--workdir",
+    code = cli.main(["train", "stage1", "--data", str(tmp_path), "--workdir",
                      str(tmp_path / "w"), "stage1.stage12_learning_rate=0.5"])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2

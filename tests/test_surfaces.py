@@ -375,3 +375,23 @@ def test_export_check_frames_of_any_size():
         assert frames.shape == shape and frames.dtype == np.uint16
     want = render_scene(1, height=8, width=9)["raw14"][:1, :9]
     np.testing.assert_array_equal(sample_frames((2, 1, 9), 16)[1], want.astype(np.uint16) << 2)
+
+
+def test_a_frame_too_large_for_the_memory_is_refused_before_anything_is_written(model, tmp_path,
+                                                                                capsys, monkeypatch):
+    """An 8000x8000 frame was killed by the kernel after minutes with no message: the compiled
+    program's memory (XLA's estimate) is compared with the free memory before any frame runs
+    (here the free memory is made 1 MiB), and refused in one line with both figures."""
+    from irdepth_jax import predict
+
+    monkeypatch.setattr(predict, "available_bytes", lambda: 2**20)
+    frames = write_frames(tmp_path / "in", range(2))
+    code, stdout, err = run(["predict", "--checkpoint", model, "--out", tmp_path / "out",
+                             "--no-progress", "--batch-size", "2", frames], capsys)
+    line = one_error_line(err)
+    assert code == 2 and "wrote" not in stdout
+    assert f"a batch of 2 frames of {HEIGHT}x{WIDTH} needs about" in line and "1 MiB free" in line
+    assert "--batch-size 1" in line and not (tmp_path / "out").exists()
+    monkeypatch.setattr(predict, "available_bytes", lambda: 2**40)
+    assert run(["predict", "--checkpoint", model, "--out", tmp_path / "out", "--no-progress",
+                frames], capsys)[0] == 0
