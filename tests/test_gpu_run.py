@@ -28,6 +28,7 @@ def test_gpu_part_refuses_without_a_gpu(tmp_path):
         main(["stage1", "--out", str(tmp_path)])
 
 
+@pytest.mark.slow  # about 3 minutes on 2 cores: over the default suite's budget
 def test_dry_run_end_to_end(tmp_path):
     env = {**os.environ, "OUT": str(tmp_path), "PYTHONPATH": ROOT}
     run = subprocess.run(["bash", os.path.join(ROOT, "experiments", "gpu_run.sh"), "dry"], env=env,
