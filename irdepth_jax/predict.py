@@ -397,7 +397,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                  "writing its pseudo-RGB and HSV images (NAME_rgb.png, NAME_hsv.png) only; "
                  "give a Stage II run for depth"), file=sys.stderr)
     predictor = Predictor(cfg, model, bits)
-    for shape, batch in batch_sizes(found, batch_size).items():  # a size too large: refused now
+    sizes = batch_sizes(found, batch_size)
+    for shape, batch in sizes.items():  # a size too large: refused now
         predictor.prepare(batch, shape)
     make_dirs(out_dir)
     lock = acquire(out_dir, "--out folder")  # one run per folder: a frame's files are one run's
@@ -413,7 +414,6 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                                writers, bar, colours)
         else:
             files = [f for sequence in found for f in sequence.files]
-            sizes = batch_sizes(found, batch_size)
 
             def emit(frame: Frame, images: dict) -> None:
                 for kind, image in output_pngs(images, colours, depth_suffix(cfg)).items():

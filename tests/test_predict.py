@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
+from trained_runs import untrained_stage2
 
 from irdepth_jax import cli
 from irdepth_jax.config import get_config
@@ -15,7 +16,6 @@ from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.depth_colours import BAR_HEIGHT, LABEL_HEIGHT
 from irdepth_jax.models.pipeline import run_pipeline
 from irdepth_jax.predict import depth_png
-from irdepth_jax.train.variables import init_unet, random_depth, save_model
 
 CFG = get_config("tiny")
 COLOUR_BAR = BAR_HEIGHT + LABEL_HEIGHT
@@ -37,10 +37,7 @@ def read(path):
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """(workdir, unet variables, depth params) of an untrained tiny Stage II model."""
-    work = tmp_path_factory.mktemp("untrained") / "run"
-    unet, depth = init_unet(CFG), random_depth(CFG)
-    save_model(str(work), CFG, unet, depth)
-    return work, unet, depth
+    return untrained_stage2(tmp_path_factory.mktemp("untrained") / "run", CFG)
 
 
 @pytest.fixture(scope="module")

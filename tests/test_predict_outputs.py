@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from ms2_layout import LIST_NAMES, partial_ms2
 from PIL import Image
+from trained_runs import untrained_stage2
 
 from irdepth_jax import cli
 from irdepth_jax.config import apply_overrides, get_config
@@ -33,10 +34,7 @@ def run(argv, capsys):
 @pytest.fixture(scope="module")
 def model(tmp_path_factory):
     """(workdir, unet variables, depth params) of an untrained tiny Stage II model."""
-    work = tmp_path_factory.mktemp("untrained") / "run"
-    unet, depth = init_unet(CFG), random_depth(CFG)
-    save_model(str(work), CFG, unet, depth)
-    return work, unet, depth
+    return untrained_stage2(tmp_path_factory.mktemp("untrained") / "run", CFG)
 
 
 @pytest.fixture(scope="module")

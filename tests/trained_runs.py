@@ -82,3 +82,13 @@ class Fingerprint:
         now = self._read()
         return sorted(name for name in set(now) | set(self.files)
                       if now.get(name) != self.files.get(name))
+
+
+def untrained_stage2(work, cfg):
+    """Saves an untrained Stage II model of `cfg` (random UNet and Depth Anything V2) as a run
+    in `work`; returns (work, unet variables, depth params)."""
+    from irdepth_jax.train.variables import init_unet, random_depth, save_model
+
+    unet, depth = init_unet(cfg), random_depth(cfg)
+    save_model(str(work), cfg, unet, depth)
+    return work, unet, depth
