@@ -15,9 +15,12 @@ Layout of a cache directory (``--cache``, default ``workdir/experiments``):
 
 Run kinds: ``stage1_i1`` (Stage I-1 only: the single-task model of table 2), ``stage1`` (I-1
 then I-2; its I-1 phase is copied from the matching ``stage1_i1`` run, so the multi-task and
-single-task models of a seed start from the same I-1 weights) and ``stage2`` (Depth Anything V2
+single-task models of a seed start from the same I-1 weights), ``stage2`` (Depth Anything V2
 on the frozen Stage I model of the same seed: every Stage II row of a table starts from the same
-Stage I checkpoint and the same Depth Anything initialisation, a paired design).
+Stage I checkpoint and the same Depth Anything initialisation, a paired design) and ``depth``
+(`irdepth train depth`: Depth Anything V2 pretrained on the visible images of a separate
+rendered set, ``data/pretrain-...``; with ``--depth-init pretrained`` every Stage II run starts
+from it, as the paper's from the released weights: `experiments.depth_network`).
 """
 
 from __future__ import annotations
@@ -40,6 +43,7 @@ DEFAULT_CACHE = os.path.join(REPO, "workdir", "experiments")
 EVAL_SPLIT = "test"
 DATA_SEED = 0  # the synthetic benchmark is one fixed dataset; --seeds vary the training only
 EVAL_SEED = 1  # its evaluation set: other scenes of the same distribution
+PRETRAIN_SEED = 2  # the depth pretraining set (visible images + depth): other scenes again
 MS2_STRIDE = 10  # the MS2 protocol evaluates every 10th test frame
 
 
@@ -98,6 +102,8 @@ class Context:
         self.protocol = (Protocol("ms2", MS2_STRIDE, "median") if self.source.format == "ms2"
                          else Protocol("synthetic" if args.data is None else "folder"))
         self.data_fingerprint = _fingerprint(self.data_path)
+        self.pretraining_data, self.pretraining_frames = None, 0
+        self.stage2_depth_checkpoint: str | None = None  # `experiments.depth_network`
         self.eval_key = hashlib.sha1(json.dumps(
             {"data": _fingerprint(self.eval_info["path"]), "split": EVAL_SPLIT,
              "protocol": dataclasses.asdict(self.protocol), "metrics": EVAL_METRICS_VERSION},
@@ -123,6 +129,15 @@ class Context:
         path, info = self._render(f"eval-n{n}", n, n, EVAL_SEED, split=EVAL_SPLIT)
         source = DataSource(path, "folder", raw_bits=self.base.data.raw_bits)
         return source, {**info, "format": source.format}
+
+    def pretraining_source(self, frames: int):
+        """(DataSource, info) of the depth pretraining set: `frames` rendered frames (visible
+        image + depth, all in the train split) of scenes apart from the training and evaluation
+        sets (dataset seed `PRETRAIN_SEED`), at the base config's size and scene distribution."""
+        from irdepth_jax.data.source import DataSource
+
+        path, info = self._render(f"pretrain-n{frames}", frames, 0, PRETRAIN_SEED, split="train")
+        return DataSource(path, "folder", raw_bits=self.base.data.raw_bits), info
 
     def _render(self, name: str, n: int, labeled: int, seed: int, split: str | None):
         from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
@@ -155,6 +170,9 @@ class Context:
             cfg = self.stage1_config(cfg)
         if kind == "stage1_i1":
             cfg = i1_config(cfg, self.base)
+        if kind == "stage2" and self.stage2_depth_checkpoint is not None:
+            cfg = dataclasses.replace(cfg, depth=dataclasses.replace(
+                cfg.depth, checkpoint=self.stage2_depth_checkpoint))
         return cfg
 
     def stage1_config(self, cfg):
@@ -162,12 +180,17 @@ class Context:
         that Stage II runs of any Stage II / depth setting share."""
         return dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
 
-    def run_dir(self, kind: str, cfg) -> str:
-        """The cache directory of the run of `kind` with config `cfg`."""
+    def run_dir(self, kind: str, cfg, data: str | None = None) -> str:
+        """The cache directory of the run of `kind` with config `cfg`, trained on the benchmark's
+        training data (or the dataset at `data`)."""
         from irdepth_jax.config import to_dict
 
-        blob = json.dumps({"kind": kind, "config": to_dict(cfg), "data": self.data_fingerprint},
-                          sort_keys=True)
+        config = to_dict(cfg)
+        checkpoint = config["depth"]["checkpoint"]
+        if checkpoint and os.path.isabs(checkpoint) and checkpoint.startswith(self.cache + os.sep):
+            config["depth"]["checkpoint"] = os.path.relpath(checkpoint, self.cache)  # movable cache
+        fingerprint = self.data_fingerprint if data is None else _fingerprint(data)
+        blob = json.dumps({"kind": kind, "config": config, "data": fingerprint}, sort_keys=True)
         return os.path.join(self.cache, "runs", f"{kind}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}")
 
     # ---------------------------------------------------------------- runs
@@ -176,19 +199,21 @@ class Context:
         cached): {'stage1' | 'stage2' | 'stage2_median': {group: metrics}, 'protocol',
         'train_wall_s', 'eval_wall_s', 'run'}."""
         cfg = self.config(kind, overrides, seed)
-        workdir = self.run_dir(kind, cfg)
+        workdir = self.run_dir(kind, cfg, self.pretraining_data if kind == "depth" else None)
         path = os.path.join(workdir, f"eval-{self.eval_key}.json")
         if os.path.exists(path):
             with open(path) as f:
                 return json.load(f)
-        train = {"stage1_i1": self._stage1_i1, "stage1": self._stage1, "stage2": self._stage2}
+        train = {"stage1_i1": self._stage1_i1, "stage1": self._stage1, "stage2": self._stage2,
+                 "depth": self._depth}
         if kind not in train:
             raise ValueError(f"unknown run kind {kind!r}")
         train_wall_s = train[kind](cfg)
         self.log(f"[{kind} seed {seed}] evaluating on {self.eval_info['path']} "
                  f"({self.protocol.name} protocol)")
         started = time.time()
-        metrics, frames = (self._eval_stage2 if kind == "stage2" else self._eval_stage1)(cfg, workdir)
+        evaluate = self._eval_stage1 if kind.startswith("stage1") else self._eval_stage2
+        metrics, frames = evaluate(cfg, workdir)
         record = {**metrics, "protocol": dataclasses.asdict(self.protocol), "split": EVAL_SPLIT,
                   "eval_data": self.eval_info["path"], "run": os.path.basename(workdir),
                   "train_wall_s": train_wall_s, "eval_wall_s": round(time.time() - started, 1)}
@@ -220,9 +245,9 @@ class Context:
         with open(path) as f:
             return json.load(f)["wall_s"]
 
-    def _train(self, fn, kind: str, cfg, opts) -> float:
-        """Runs `fn(cfg, source, opts)` (once: a finished run is only timed); returns the
-        training wall time."""
+    def _train(self, fn, kind: str, cfg, opts, source=None) -> float:
+        """Runs `fn(cfg, source, opts)` (once: a finished run is only timed) on `source` (default:
+        the benchmark's training data); returns the training wall time."""
         from irdepth_jax.errors import Interrupted, RunError
         from irdepth_jax.train.workdir_lock import WorkdirLocked, acquire, release
 
@@ -243,7 +268,7 @@ class Context:
                      f"{os.path.relpath(opts.workdir, self.cache)}")
             started = time.time()
             try:
-                fn(cfg, self.source, opts)
+                fn(cfg, self.source if source is None else source, opts)
             except Interrupted as err:
                 self.log(f"{err}\nre-run the same command to continue")
                 raise SystemExit(130) from None
@@ -284,6 +309,22 @@ class Context:
         workdir = self.run_dir("stage2", cfg)
         return self._train(train_stage2, "stage2", cfg, self._options(
             workdir, stage1_checkpoint=self.run_dir("stage1", s1_cfg)))
+
+    def _depth(self, cfg) -> float:
+        from irdepth_jax.train.stages import train_depth
+
+        if self.pretraining_data is None:
+            raise ValueError("a 'depth' run needs Context.use_pretraining_set first")
+        source, _ = self.pretraining_source(self.pretraining_frames)
+        workdir = self.run_dir("depth", cfg, self.pretraining_data)
+        return self._train(train_depth, "depth", cfg, self._options(workdir), source=source)
+
+    def use_pretraining_set(self, frames: int) -> dict:
+        """Renders (once) the depth pretraining set of `frames` frames that 'depth' runs train
+        on; returns its info record."""
+        _, info = self.pretraining_source(frames)
+        self.pretraining_data, self.pretraining_frames = info["path"], frames
+        return info
 
     # ---------------------------------------------------------------- evaluation
     def _eval_frames(self):

@@ -28,6 +28,12 @@ have:
   effect < 0), *no effect (equivalent)* (the 95 % interval inside ±margin), *undecided* (none
   of these; the seeds it would take are stated), or *no claim* where the paper's own difference
   is not in its favour.
+* **depth gates** (`depth_gates`, `experiments.depth_network`): a claim of a depth table (1, 4,
+  7) is *undecidable: <gate>* instead, whatever its statistics, unless (1) its Depth Anything V2
+  started from a network pretrained on visible images that passed its gate, (2) the Stage I
+  model's mIoU (table 3, multi-task) reached the Stage I gate, and (3) its row beats the table's
+  blank-image control row of the same group by the margin on δ<1.25 (mean over seeds): a depth
+  network that does no better than on a constant grey image decides nothing about its input.
 
 The paper's effects are on its private dataset; ours on the synthetic benchmark (or --data):
 effect sizes in the same units on different data, so a verdict says what our benchmark shows,
@@ -46,6 +52,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import optimize, stats
 
+from experiments.depth_network import GATE_HSV_MARGIN, GATE_STAGE1_MIOU
 from experiments.report import COLUMN_NAMES, HIGHER_IS_BETTER
 from experiments.runner import RECON_COLUMNS, RESULTS
 
@@ -115,6 +122,9 @@ def _claims() -> tuple[Claim, ...]:
 
 CLAIMS = _claims()
 """The paper's comparisons, checked by `check_claims` (notebooks/ablations.ipynb, docs/experiments.md)."""
+DEPTH_TABLES = ("table1_preprocessing", "table4_illumination", "table7_sky_loss")
+BLANK_ROW = "blank (control)"
+STAGE1_TABLE, STAGE1_ROW = "table3_multitask_segmentation", "multi-task"
 
 
 # --------------------------------------------------------------------------- statistics
@@ -292,21 +302,80 @@ def _one_claim(c: Claim, record: dict) -> dict:
             "seeds_needed": seeds_needed(paper_effect, st["sd"]), "method": METHOD}
 
 
+# --------------------------------------------------------------------------- depth gates
+def _seed_mean(row: dict, column: str) -> float:
+    return float(np.mean([v[column] for v in row["per_seed"].values()]))
+
+
+def depth_gates(records: dict[str, dict]) -> dict:
+    """The gates every depth claim must pass (module docstring): {'pretraining': {...,
+    'passed'}, 'stage1': {'miou', 'passed', ...}, 'depth_network': the depth tables' pretraining
+    record or None}."""
+    networks = [records[t].get("depth_network") for t in DEPTH_TABLES if t in records]
+    network = networks[0] if networks and all(n == networks[0] for n in networks) else None
+    if network is not None:
+        pretraining = {"passed": bool(network["passed"]), "why": network["rule"]}
+    elif any(networks):
+        pretraining = {"passed": False, "why": "the depth tables started from different networks"}
+    else:
+        pretraining = {"passed": False, "why": "the depth network started from random weights "
+                                               "(no pretraining on visible images)"}
+    stage1 = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU,
+              "why": f"{STAGE1_TABLE} has no '{STAGE1_ROW}' row"}
+    rows = {r["series"]: r for r in records.get(STAGE1_TABLE, {}).get("rows", [])}
+    if STAGE1_ROW in rows:
+        miou = _seed_mean(rows[STAGE1_ROW], "miou")
+        stage1 |= {"miou": round(miou, 4), "passed": miou >= GATE_STAGE1_MIOU,
+                   "why": f"{STAGE1_TABLE} '{STAGE1_ROW}' mIoU {miou:.3f} (mean over seeds); "
+                          f"the gate is >= {GATE_STAGE1_MIOU}"}
+    return {"pretraining": pretraining, "stage1": stage1, "depth_network": network,
+            "control_margin_d1": GATE_HSV_MARGIN}
+
+
+def blank_control_gate(c: Claim, record: dict) -> dict:
+    """Gate 3 of one depth claim: {'passed', 'margin_d1' (ours - blank, δ<1.25, mean over
+    seeds, or None), 'why'}."""
+    rows = {(r["series"], r["group"]): r for r in record["rows"]}
+    blank = rows.get((BLANK_ROW, c.ours[1]))
+    if blank is None:
+        return {"passed": False, "margin_d1": None, "why": "no blank-image control row"}
+    margin = _seed_mean(rows[c.ours], "d1") - _seed_mean(blank, "d1")
+    return {"passed": margin >= GATE_HSV_MARGIN, "margin_d1": round(margin, 4),
+            "why": f"{rows[c.ours]['label']} beats the blank image by {margin:+.3f} δ<1.25 "
+                   f"(needs >= {GATE_HSV_MARGIN})"}
+
+
+def _undecidable(c: Claim, record: dict, gates: dict) -> str | None:
+    """'undecidable: <gate>' for a depth claim that fails a gate, else None."""
+    if c.table not in DEPTH_TABLES:
+        return None
+    failed = [name for name, gate in (("pretraining gate", gates["pretraining"]),
+                                      ("Stage I gate", gates["stage1"]),
+                                      ("blank-control gate", blank_control_gate(c, record)))
+              if not gate["passed"]]
+    return f"undecidable: {', '.join(failed)}" if failed else None
+
+
 def check_claims(records: dict[str, dict], claims: Sequence[Claim] = CLAIMS) -> list[dict]:
     """Each claim of a loaded table, in `claims` order: claim, table, row, baseline, metric,
     higher_is_better, the `seed_level` statistics (effect, sd, low, high = interval, p,
     seeds), detectable, per_seed differences, agree (seeds whose difference favours the
     paper), frames, paper_effect, margin, seeds_needed, p_holm (within the table's tested
-    claims: those where the paper's effect is > 0), method and verdict. A table without
-    frames.npz is refused."""
-    out = [_one_claim(c, records[c.table]) for c in claims if c.table in records]
+    claims: those where the paper's effect is > 0), method and verdict ('undecidable: <gate>'
+    for a depth claim that fails a `depth_gates` gate). A table without frames.npz is refused."""
+    gates = depth_gates(records)
+    out, undecidable = [], []
+    for c in claims:
+        if c.table in records:
+            out.append(_one_claim(c, records[c.table]))
+            undecidable.append(_undecidable(c, records[c.table], gates))
     for table in {r["table"] for r in out}:
         family = [r for r in out if r["table"] == table and r["paper_effect"] > 0]
         for r, adjusted in zip(family, holm([r["p"] for r in family])):
             r["p_holm"] = adjusted
-    for r in out:
+    for r, gate in zip(out, undecidable):
         r.setdefault("p_holm", math.nan)
-        r["verdict"] = verdict(r, r["paper_effect"], r["margin"])
+        r["verdict"] = gate if gate and r["paper_effect"] > 0 else verdict(r, r["paper_effect"], r["margin"])
     return out
 
 
@@ -334,6 +403,7 @@ def claims_json(records: dict[str, dict], rows: list[dict]) -> dict:
             "seeds": sorted({s for r in records.values() for s in r["seeds"]}),
             "alpha": ALPHA, "power": POWER,
             "margins": {k: {"margin": m, "why": why} for k, (m, why) in MARGINS.items()},
+            "depth_network": clean(depth_gates(records)),
             "claims": [clean({k: r[k] for k in CLAIM_KEYS}) for r in rows]}
 
 
@@ -376,6 +446,18 @@ def claims_markdown(records: dict[str, dict], rows: list[dict]) -> str:
     counts = {}
     for c in rows:
         counts[c["verdict"]] = counts.get(c["verdict"], 0) + 1
+    gates = depth_gates(records)
+    network = gates["depth_network"]
+    lines += ["", "Depth gates (a depth claim that fails one is *undecidable*, whatever its "
+              "statistics; experiments/depth_network.py):", "",
+              f"- pretraining: {'passed' if gates['pretraining']['passed'] else 'FAILED'} "
+              f"({gates['pretraining']['why']}"
+              + (f"; measured δ<1.25 {network['rgb_d1']:.3f} on visible images, blank "
+                 f"{network['blank_d1']:.3f}" if network else "") + ")",
+              f"- Stage I: {'passed' if gates['stage1']['passed'] else 'FAILED'} "
+              f"({gates['stage1']['why']})",
+              f"- blank-image control: each depth claim's row must beat its table's "
+              f"'{BLANK_ROW}' row by >= {GATE_HSV_MARGIN} δ<1.25"]
     lines += ["", "Verdicts: " + ", ".join(f"{v}: {n}" for v, n in sorted(counts.items())) + ".",
               "", "Equivalence margins (at most the paper's effect for each claim):", ""]
     lines += [f"- {COLUMN_NAMES[k]}: ±{m:g} ({why})" for k, (m, why) in MARGINS.items()]

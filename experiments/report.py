@@ -77,6 +77,16 @@ def _fmt(x: float, col: str) -> str:
     return f"{x:.2f}" if col in ("psnr", "rmse") else f"{x:.3f}"
 
 
+def _depth_network(record: dict) -> str:
+    """Where Stage II's Depth Anything V2 started, with the pretraining gate's figures."""
+    network = record.get("depth_network")
+    if network is None:
+        return "random initialisation (`--depth-init random`; no pretraining gate)"
+    verdict = "passed" if network["passed"] else "FAILED"
+    return (f"pretrained ({network['made_by']}); gate {verdict}: δ<1.25 {network['rgb_d1']:.3f} on "
+            f"held-out visible images, blank {network['blank_d1']:.3f} ({network['rule']})")
+
+
 def markdown(table: Table, record: dict) -> str:
     """The results.md text of a finished table."""
     cols = table.columns
@@ -123,6 +133,7 @@ def markdown(table: Table, record: dict) -> str:
               f"- training data: {data.get('made_by', data['path'])} ({data['source']}, "
               f"{data['format']})",
               f"- evaluation data: {ev.get('made_by', ev['path'])} ({ev['source']}, {ev['format']})",
+              f"- depth network: {_depth_network(record)}",
               f"- hardware: {hw['cpu']}, {hw['cores']} cores, {hw['backend']}; jax {hw['jax']}, "
               f"python {hw['python']}; {hw['platform']}",
               f"- code: git {record['git']}; wall time of this invocation "

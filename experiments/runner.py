@@ -137,6 +137,12 @@ def parse_args(table: Table, argv: Sequence[str] | None = None) -> argparse.Name
                     help=f"smoke test: tiny preset, seed 0, 2 steps per phase, "
                          f"{QUICK_EVAL_FRAMES} evaluation frames (overrides --preset/--seeds/"
                          f"--eval-frames; not a result)")
+    ap.add_argument("--depth-init", default="random", choices=("random", "pretrained"),
+                    help="where every Stage II run's Depth Anything V2 starts: 'random' (random "
+                         "weights: what the committed tables used) or 'pretrained' (pretrained "
+                         "on the visible images of a separate rendered set, as the paper's "
+                         "starts from the released weights; trained once into the cache, with "
+                         "its gate measured: experiments/depth_network.py)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = ap.parse_args(argv)
     if args.quick:
@@ -213,6 +219,13 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
     keep_freed_memory()  # as the irdepth command does (irdepth_jax.hostmem)
     started = time.time()
     ctx = Context(args)
+    depth_network = None
+    if args.depth_init == "pretrained":
+        from experiments.depth_network import QUICK_RECIPE, RECIPE, pretrained_depth, pretraining_gate
+
+        recipe = QUICK_RECIPE if args.quick else RECIPE
+        depth_network = pretraining_gate(ctx, recipe)
+        pretrained_depth(ctx, recipe)
     frames: dict[str, np.ndarray] = {}
     rows = [_row(ctx, table, arm, args.seeds, i, frames) for i, arm in enumerate(table.arms)]
     record = {
@@ -223,6 +236,7 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
         "split": EVAL_SPLIT, "protocol": dataclasses.asdict(ctx.protocol), "data": ctx.data_info,
         "eval_data": ctx.eval_info, "hardware": hardware(), "git": git_commit(),
         "columns": list(table.columns), "rows": rows, "paper": table.paper,
+        "depth_init": args.depth_init, "depth_network": depth_network,
         "wall_s": round(time.time() - started, 1),
         "runs_wall_s": round(sum({v["run"]: v["run_wall_s"] for r in rows
                                   for v in r["per_seed"].values()}.values()), 1),

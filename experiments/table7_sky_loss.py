@@ -3,7 +3,8 @@
     python experiments/table7_sky_loss.py --preset small --seeds 0 1 2
 
 Two Stage II trainings on the HSV pseudo-RGB that differ only in `stage2.sky_loss` (the sky
-loss pulls predictions in the Stage I sky mask to 0.99 x the largest training depth).
+loss pulls predictions in the Stage I sky mask to 0.99 x the largest training depth), and the
+blank-image control (a constant grey input, with the sky loss).
 """
 
 from experiments.runner import DEPTH_COLUMNS, SKY_COLUMNS, Arm, Table, main
@@ -15,9 +16,11 @@ TABLE = Table(
            "alone (`stage2.sky_loss=false`). The depth metrics count only pixels with "
            "ground-truth depth, which never include the sky; beside them, on the labelled "
            "evaluation frames: the share of true-sky pixels predicted at >= 0.9 x the sky "
-           "reference depth, and AbsRel within 3 px of the skyline."),
+           "reference depth, and AbsRel within 3 px of the skyline. Control: *blank* = the same "
+           "training with the sky loss on a constant grey image."),
     arms=(Arm("without sky loss", "stage2", ("stage2.sky_loss=false",)),
-          Arm("with sky loss", "stage2")),
+          Arm("with sky loss", "stage2"),
+          Arm("blank (control)", "stage2", ("stage2.preprocessing=blank",))),
     columns=DEPTH_COLUMNS + SKY_COLUMNS,
     paper={"without sky loss": dict(d1=0.964, d2=0.987, d3=0.996, abs_rel=0.060, sq_rel=0.482,
                                     rmse=3.805),

@@ -122,8 +122,8 @@ def _add_synth(sub) -> None:
     p.add_argument("--scenes", choices=("street", "varied"), default="street",
                    help="scene distribution: 'street' (one straight street, a level camera at "
                         "~1.5 m; the default and what the committed results used) or 'varied' "
-                        "(camera height 0.8-3 m, field of view 45-95 degrees, horizon row and "
-                        "roll per frame; crossings, open ground, close obstacles)")
+                        "(camera height 1.3-1.7 m, horizon row and roll per frame, one field of "
+                        "view; crossings, open ground, close obstacles)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset")
     _progress_flag(p)
     p.set_defaults(func=cmd_synth)

@@ -39,6 +39,10 @@ the folder holding them (`data.ms2`; `irdepth eval --gt`); published numbers dif
 0.04 AbsRel between versions. 'depth_filtered' is the default (the official loader's)."""
 IGNORE_LABEL = 255
 SKY_CLASS = 0
+STAGE1_IMAGES: tuple[str, ...] = ("hsv", "value")
+"""Stage II inputs the Stage I model makes (`stage2.preprocessing`): 'hsv', its pseudo-RGB, and
+'value', its V channel alone as a grey image (the attribution arm of table 1: what H and S add).
+The other inputs are made on the host (`data.source.host_image`)."""
 
 
 @dataclass(frozen=True)
@@ -90,7 +94,7 @@ class DataConfig:
     num_frames: int = 2292  # synthetic: total frames (Stage II split 1500/400/392)
     num_labeled: int = 800  # synthetic: labelled frames (600/100/100)
     # synthetic: the renderer's scene distribution, 'street' (one straight street, a level camera
-    # at ~1.5 m: what every committed result used) or 'varied' (camera height, field of view,
+    # at ~1.5 m: what every committed result used) or 'varied' (camera height 1.3-1.7 m,
     # horizon and roll per frame; crossings, open ground, close obstacles).
     scenes: str = "street"
     augment: bool = True
@@ -141,8 +145,9 @@ class Stage1Config:
 class Stage2Config:
     """Stage II: Depth Anything V2 fine-tuning on the HSV pseudo-RGB image."""
 
-    # hsv (ours) | rgb (aligned visible image) | a tonemap of the raw frame: he | clahe | camera |
-    # linear | plateau | double_plateau | dde (irdepth_jax.imaging.tonemap.TONEMAPS)
+    # hsv (ours) | value (its V channel alone, grey) | rgb (aligned visible image) | blank (a
+    # constant grey control) | a tonemap of the raw frame: he | clahe | camera | linear | plateau |
+    # double_plateau | dde (irdepth_jax.imaging.tonemap.TONEMAPS)
     preprocessing: str = "hsv"
     learning_rate: float = 5e-6  # backbone rate; the head gets head_lr_multiplier x this
     head_lr_multiplier: float = 10.0

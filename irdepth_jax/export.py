@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.config import CLASS_NAMES, Config, resolved_raw_bits, to_dict
+from irdepth_jax.config import CLASS_NAMES, STAGE1_IMAGES, Config, resolved_raw_bits, to_dict
 from irdepth_jax.fileio import make_dirs, write_bytes
 from irdepth_jax.models.pipeline import raw_to_depth
 
@@ -63,11 +63,12 @@ def depth_function(cfg: Config, model: dict, checkpoint: str) -> Callable[[jax.A
     if model["depth"] is None:
         raise ExportError(f"--checkpoint {checkpoint}: a Stage I model; export needs a Stage II "
                           "(depth) checkpoint")
-    if cfg.stage2.preprocessing != "hsv":
+    if cfg.stage2.preprocessing not in STAGE1_IMAGES:
         raise ExportError(
             f"--checkpoint {checkpoint}: stage2.preprocessing={cfg.stage2.preprocessing}: its "
             "input image is made on the host (NumPy / OpenCV, or a visible camera), not by a JAX "
-            "function; only HSV models (stage2.preprocessing=hsv) can be exported")
+            f"function; only models whose input the Stage I model makes (stage2.preprocessing="
+            f"{' or '.join(STAGE1_IMAGES)}) can be exported")
     unet, depth = model["unet"], model["depth"]
     return lambda raw: raw_to_depth(unet, depth, raw, cfg)
 

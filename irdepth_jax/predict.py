@@ -126,7 +126,7 @@ class Predictor:
         from irdepth_jax.imaging.color import hsv_to_rgb
 
         if self.model["unet"] is not None and self.cfg.stage2.preprocessing != "hsv":
-            out = {**out, "rgb": hsv_to_rgb(out["hsv"])}  # its input image is a tone map
+            out = {**out, "rgb": hsv_to_rgb(out["hsv"])}  # its input image is not the pseudo-RGB
         keys = [k for k in ("depth", "rgb", "hsv")
                 if out[k] is not None and (k == "depth" or self.model["unet"] is not None)]
         return {k: np.asarray(v) for k, v in zip(keys, jax.device_get([out[k] for k in keys]))}

@@ -107,6 +107,51 @@ def test_verdicts():
     assert claims.margin_of("d1", 0.003) == 0.003 and claims.margin_of("d1", 0.5) == 0.01
 
 
+def _depth_records(hsv_d1, blank_d1, network, miou):
+    """Synthetic results.json records: table 1 (HSV, HE, blank: δ<1.25 per seed) with its
+    frames.npz stand-in, and table 3's multi-task mIoU."""
+    def row(series, d1):
+        return {"series": series, "group": "all", "label": series,
+                "per_seed": {str(s): {"d1": v, "abs_rel": 0.1} for s, v in enumerate(d1)}}
+    t1 = {"rows": [row("HSV (ours)", hsv_d1), row("HE", [v - 0.05 for v in hsv_d1]),
+                   row("CLAHE", hsv_d1), row("camera-like (IRCBA stand-in)", hsv_d1)]
+          + ([row("blank (control)", blank_d1)] if blank_d1 else []),
+          "depth_network": network}
+    t3 = {"rows": [{"series": "multi-task", "group": "all", "label": "multi-task",
+                    "per_seed": {"0": {"miou": miou}, "1": {"miou": miou}}}]}
+    return {"table1_preprocessing": t1, "table3_multitask_segmentation": t3}
+
+
+def test_depth_claims_are_undecidable_unless_every_gate_passes():
+    """Gate by gate: a random-init depth network, a Stage I below the mIoU gate, a missing blank
+    row, and a row less than 0.10 δ<1.25 above the blank row each make a table-1 claim
+    'undecidable: <that gate>'; with all three passed there is no gate verdict."""
+    network = {"passed": True, "rule": "r", "rgb_d1": 0.9, "blank_d1": 0.3}
+    claim = claims.CLAIMS[0]
+    assert claim.table == "table1_preprocessing" and claim.column == "d1"
+
+    def gate(hsv_d1, blank_d1, network, miou):
+        records = _depth_records(hsv_d1, blank_d1, network, miou)
+        return claims._undecidable(claim, records[claim.table], claims.depth_gates(records))
+
+    good = ([0.80, 0.82, 0.81], [0.60, 0.65, 0.70])  # margin 0.16
+    assert gate(*good, network, 0.7) is None
+    assert gate(*good, None, 0.7) == "undecidable: pretraining gate"
+    assert gate(*good, {**network, "passed": False}, 0.7) == "undecidable: pretraining gate"
+    assert gate(*good, network, 0.59) == "undecidable: Stage I gate"
+    assert gate(good[0], None, network, 0.7) == "undecidable: blank-control gate"
+    assert gate(good[0], [0.72, 0.72, 0.72], network, 0.7) == "undecidable: blank-control gate"
+    assert gate(good[0], [0.70, 0.71, 0.72], network, 0.7) is None  # margin 0.10 exactly
+    records = _depth_records(*good, network, 0.7)
+    control = claims.blank_control_gate(claim, records[claim.table])
+    assert control["margin_d1"] == pytest.approx(0.81 - 0.65)
+    assert claims.depth_gates(records)["stage1"]["miou"] == 0.7
+    # a claim outside the depth tables is never gated
+    table2 = claims.Claim("table2_multitask_reconstruction", "", ("a", "all"), ("b", "all"), "ssim",
+                          ("a", "b"))
+    assert claims._undecidable(table2, {}, claims.depth_gates({})) is None
+
+
 def _simulated_experiments(effect: float, sims: int, seeds: int = 3, frames: int = 200, seed: int = 0):
     """Per-frame results of two paired rows as our tables have them: a frame difficulty shared
     by every run, a per-seed offset shared by the seed's two rows, a per-seed deviation of the

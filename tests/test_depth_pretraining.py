@@ -37,6 +37,19 @@ def test_train_depth_trains_on_the_visible_images(depth_run, capsys):
     assert len(losses) == 2 and all(np.isfinite(losses))
 
 
+def test_train_depth_on_a_blank_image_is_the_pretraining_control(synthetic_data, tmp_path):
+    """stage2.preprocessing=blank: the same training on a constant grey image (the pretraining
+    gate's control), recorded as such."""
+    work = tmp_path / "blank"
+    assert cli.main(["train", "depth", "--data", str(synthetic_data), "--workdir", str(work),
+                     "--steps", "1", *QUICK, "stage2.preprocessing=blank"]) == 0
+    with open(work / "config.json") as f:
+        assert json.load(f)["stage2"]["preprocessing"] == "blank"
+    with open(work / "metrics.jsonl") as f:
+        info = {k: v for ln in map(json.loads, f) if ln.get("kind") == "info" for k, v in ln.items()}
+    assert info["input"] == "blank"
+
+
 def test_stage2_starts_from_a_depth_run_as_from_a_released_checkpoint(depth_run):
     """depth.checkpoint=RUN_DIR: backbone and (same kind) head are the run's final params; a
     relative head is started fresh, as from a released checkpoint of the other kind."""

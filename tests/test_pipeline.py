@@ -118,6 +118,10 @@ def test_run_pipeline_of_a_stage1_model_and_of_a_baseline(models, frames):
     np.testing.assert_allclose(out["rgb"], image / np.float32(255), atol=1e-7)
     with pytest.raises(ValueError, match="pass it as `image`"):
         run_pipeline(None, da, None, cfg)
+    # 'value': the HSV image's V channel as grey, made by the same Stage I model
+    value = run_pipeline(unet, da, frames["raw14"], apply_overrides(CFG, ["stage2.preprocessing=value"]))
+    np.testing.assert_array_equal(value["rgb"], np.repeat(np.asarray(stage1["hsv"])[..., 2:], 3, -1))
+    assert host_image({"raw14": frames["raw14"]}, "value") is None
     with pytest.raises(ValueError, match="needs the Stage I model"):
         run_pipeline(None, da, frames["raw14"], CFG)
 

@@ -13,11 +13,11 @@ from typing import Any
 import jax
 import numpy as np
 
-from irdepth_jax.config import IGNORE_LABEL, Config, resolved_raw_bits
+from irdepth_jax.config import IGNORE_LABEL, STAGE1_IMAGES, Config, resolved_raw_bits
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.imaging.tonemap import TONEMAPS
 
-PREPROCESSING = ("hsv", "rgb", "blank") + tuple(TONEMAPS)
+PREPROCESSING = STAGE1_IMAGES + ("rgb", "blank") + tuple(TONEMAPS)
 """Stage II input images: 'blank' (a constant grey image) is a control: what the depth network
 learns from the scene layout alone, with no image information."""
 BLANK_GREY = 128
@@ -239,13 +239,14 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
 
 
 def host_image(batch: dict, preprocessing: str, bits: int = 14) -> np.ndarray | None:
-    """The Stage II input image (B, H, W, 3) uint8 made on the host, or None for 'hsv'.
+    """The Stage II input image (B, H, W, 3) uint8 made on the host, or None for the images the
+    Stage I model makes (`config.STAGE1_IMAGES`: 'hsv', 'value').
 
     'rgb': the aligned visible image; 'blank': constant grey (the layout-prior control); a tonemap
     name ('he', 'clahe', 'camera', ...): the tone-mapped raw frame (B, H, W) of `bits`-bit counts
     replicated to three channels.
     """
-    if preprocessing == "hsv":
+    if preprocessing in STAGE1_IMAGES:
         return None
     if preprocessing == "blank":
         return np.full(np.shape(batch["raw14"]) + (3,), BLANK_GREY, np.uint8)

@@ -21,7 +21,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import SKY_CLASS, Config, resolved_raw_bits
+from irdepth_jax.config import SKY_CLASS, STAGE1_IMAGES, Config, resolved_raw_bits
 from irdepth_jax.imaging.color import class_hue, hsv_compose, hsv_to_rgb
 from irdepth_jax.imaging.raw import normalize_raw
 from irdepth_jax.models.depth_anything import (
@@ -110,7 +110,8 @@ def run_pipeline(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, 
       brightness: optional (B,) brightness-augmentation factors (training; see `unet_input`).
     Returns:
       dict: ``depth`` (B, H, W) float32 metres (None without `da_params`); ``rgb`` (B, H, W, 3)
-      the depth network's input image in [0, 1] (the pseudo-RGB for HSV models); with a UNet
+      the depth network's input image in [0, 1] (the pseudo-RGB for HSV models, V as grey for
+      'value'); with a UNet
       also ``hsv`` (B, H, W, 3) in [0, 1], ``seg`` (B, H, W) int32 classes and ``sky``
       (B, H, W) bool (argmax == sky), else None.
     """
@@ -120,10 +121,11 @@ def run_pipeline(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, 
         hsv = unet_to_hsv(outputs, cfg.stage2.hue_mode)
         seg = jnp.argmax(outputs["seg_logits"], axis=-1).astype(jnp.int32)
         sky = seg == SKY_CLASS
-    if cfg.stage2.preprocessing == "hsv":
+    if cfg.stage2.preprocessing in STAGE1_IMAGES:
         if hsv is None:
-            raise ValueError("stage2.preprocessing=hsv needs the Stage I model (unet_vars)")
-        rgb = hsv_to_rgb(hsv)
+            raise ValueError(f"stage2.preprocessing={cfg.stage2.preprocessing} needs the Stage I "
+                             "model (unet_vars)")
+        rgb = hsv_to_rgb(hsv) if cfg.stage2.preprocessing == "hsv" else jnp.repeat(hsv[..., 2:], 3, -1)
     elif image is not None:
         rgb = image.astype(jnp.float32) / 255.0
     else:

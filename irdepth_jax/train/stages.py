@@ -15,7 +15,7 @@ from collections.abc import Callable
 import jax
 import numpy as np
 
-from irdepth_jax.config import Config
+from irdepth_jax.config import STAGE1_IMAGES, Config
 from irdepth_jax.data.fingerprint import data_fingerprint
 from irdepth_jax.data.source import (
     PREPROCESSING,
@@ -163,7 +163,8 @@ def _check_i2_continues_i1(workdir: str, i1_total: int) -> None:
 
 def train_depth(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     """Depth pretraining: Depth Anything V2 trained (or fine-tuned, from `depth.checkpoint`) on
-    the dataset's aligned visible images (rgb/) with SiLog, the official parameter groups
+    the dataset's aligned visible images (rgb/; or, with ``stage2.preprocessing=blank``, a constant
+    grey image: the control of the pretraining gate) with SiLog, the official parameter groups
     (backbone at `stage2.learning_rate`, head at `head_lr_multiplier` x it) and Stage II's
     schedule, into `opts.workdir`. It is Stage II with ``stage2.preprocessing=rgb``, no sky loss
     and no Stage I model, so it resumes, runs multi-device and is evaluated like Stage II; a
@@ -174,10 +175,13 @@ def train_depth(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     if opts.stage1_checkpoint is not None:
         raise RunError("--stage1-checkpoint: train depth trains on visible images, without a "
                        "Stage I model")
-    if cfg.stage2.preprocessing not in ("hsv", "rgb"):  # hsv: the presets' default, not a choice
+    if cfg.stage2.preprocessing not in ("hsv", "rgb", "blank"):  # hsv: the presets' default
         raise RunError(f"stage2.preprocessing={cfg.stage2.preprocessing}: train depth trains on "
-                       "the visible images (rgb); the thermal inputs are train stage2's")
-    stage2 = dataclasses.replace(cfg.stage2, preprocessing="rgb", sky_loss=False)
+                       "the visible images (rgb), or on a constant grey image (blank: the control "
+                       "that measures what the scene layout alone gives); the thermal inputs are "
+                       "train stage2's")
+    image = "blank" if cfg.stage2.preprocessing == "blank" else "rgb"
+    stage2 = dataclasses.replace(cfg.stage2, preprocessing=image, sky_loss=False)
     return train_stage2(dataclasses.replace(cfg, stage2=stage2), source, opts)
 
 
@@ -235,8 +239,9 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     s2 = cfg.stage2
     if s2.preprocessing not in PREPROCESSING:
         raise RunError(f"stage2.preprocessing {s2.preprocessing!r}: choose one of {PREPROCESSING}")
-    if opts.stage1_checkpoint is None and (s2.preprocessing == "hsv" or s2.sky_loss):
-        raise RunError("stage 2 needs --stage1-checkpoint (for the HSV input and the sky mask); "
+    if opts.stage1_checkpoint is None and (s2.preprocessing in STAGE1_IMAGES or s2.sky_loss):
+        raise RunError(f"stage 2 needs --stage1-checkpoint (for the {s2.preprocessing} input and "
+                       "the sky mask); "
                        "for a baseline without it use stage2.preprocessing=he "
                        "stage2.sky_loss=false")
     unet, segmentation = None, {"labeled_frames": None, "why": "no Stage I model"}

@@ -13,7 +13,15 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import STAGE1_MODEL_KEYS, Config, from_dict, get_key, resolved_raw_bits, with_keys
+from irdepth_jax.config import (
+    STAGE1_IMAGES,
+    STAGE1_MODEL_KEYS,
+    Config,
+    from_dict,
+    get_key,
+    resolved_raw_bits,
+    with_keys,
+)
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
@@ -298,7 +306,7 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
             return cfg, stage, {"unet": dict(items["model"]), "depth": None,
                                 "segmentation": segmentation, "trained_on": trained_on}
         templates = {"model": {"params": depth_shapes(cfg), "batch_stats": {}}}
-        has_unet = cfg.stage2.preprocessing == "hsv" or cfg.stage2.sky_loss
+        has_unet = cfg.stage2.preprocessing in STAGE1_IMAGES or cfg.stage2.sky_loss
         if has_unet:
             templates["frozen"] = {"unet": unet_shapes(cfg)}
         items, _ = restore_items(directory, stage, templates)

@@ -9,7 +9,7 @@ vector and a column vector, so each intersection is a few broadcast numpy operat
 
 Camera: pinhole at height ~1.5 m looking along +z, no pitch, focal length 0.9 * width, horizon at
 row 0.45 * height. Depth is the z-depth (distance along the optical axis, KITTI/MS2 convention).
-`scenes='varied'` draws the camera's height, field of view, horizon row and roll per frame and
+`scenes='varied'` draws the camera's height, horizon row and roll per frame (one focal length) and
 adds crossings, open ground and close obstacles, so that no fixed depth layout fits most frames
 (the default 'street' distribution is what every committed dataset was rendered from).
 

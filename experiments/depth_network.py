@@ -1,0 +1,86 @@
+"""The depth network the depth tables start from, and the gates that say whether they can decide.
+
+The paper fine-tunes a *pretrained* Depth Anything V2 (released weights, trained on visible
+images) on its thermal inputs. We cannot download those weights, so we make the same situation:
+``--depth-init pretrained`` pretrains our Depth Anything V2 on the visible images of a separate
+rendered set (`irdepth train depth`, the recipe below) and starts every Stage II run from it.
+
+Gates (`experiments.claims` reports a depth claim as "undecidable: <gate>" when one fails):
+
+1. pretraining: the pretrained network on the held-out evaluation renders' visible images
+   reaches delta<1.25 >= `GATE_RGB_D1`, and >= `GATE_RGB_MARGIN` above the same network trained
+   for the same steps on a constant grey image (what the scene layout alone gives);
+2. Stage I: the multi-task model's segmentation mIoU on the evaluation set >= `GATE_STAGE1_MIOU`
+   (so the Hue channel and the sky mask carry information);
+3. per depth table: the HSV arm beats the blank-image control by >= `GATE_HSV_MARGIN`
+   delta<1.25.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+from experiments.cache import Context
+
+GATE_RGB_D1 = 0.85
+GATE_RGB_MARGIN = 0.15
+GATE_STAGE1_MIOU = 0.6
+GATE_HSV_MARGIN = 0.10
+
+
+@dataclasses.dataclass(frozen=True)
+class Recipe:
+    """How the depth network is pretrained (`irdepth train depth` on rendered visible images).
+
+    Attributes:
+      frames: rendered frames of the pretraining set (all training frames; evaluation uses the
+        benchmark's own held-out evaluation set).
+      steps: optimizer steps (batch `stage2.batch_size` of the preset).
+      learning_rate: backbone rate (the head's is `stage2.head_lr_multiplier` x it), poly decay.
+      seed: training seed (one pretrained network for every Stage II seed, as one release).
+    """
+
+    frames: int = 2000
+    steps: int = 3000
+    learning_rate: float = 1e-4
+    seed: int = 0
+
+    def overrides(self, image: str) -> tuple[str, ...]:
+        """The `train depth` overrides for the network trained on `image` ('rgb' or 'blank')."""
+        return (f"stage2.preprocessing={image}", f"stage2.steps={self.steps}",
+                f"stage2.learning_rate={self.learning_rate:g}")
+
+
+RECIPE = Recipe()
+QUICK_RECIPE = Recipe(frames=24, steps=2)
+"""--quick's: a smoke test of the mechanics, not a pretrained network."""
+
+
+def pretrained_depth(ctx: Context, recipe: Recipe = RECIPE) -> str:
+    """The run directory of the depth network pretrained on visible images (trained and
+    evaluated first when not cached); sets it as every Stage II run's ``depth.checkpoint``."""
+    ctx.use_pretraining_set(recipe.frames)
+    workdir = ctx.workdir("depth", recipe.overrides("rgb"), recipe.seed)
+    ctx.stage2_depth_checkpoint = workdir
+    return workdir
+
+
+def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
+    """Gate 1, measured: {'rgb_d1', 'blank_d1', 'passed', 'rule', 'made_by', ...} (the
+    `depth_network` record of results.json and claims.json). Trains the two networks when not
+    cached."""
+    info = ctx.use_pretraining_set(recipe.frames)
+    d1 = {image: ctx.result("depth", recipe.overrides(image), recipe.seed)["stage2"]["all"]["d1"]
+          for image in ("rgb", "blank")}
+    passed = d1["rgb"] >= GATE_RGB_D1 and d1["rgb"] - d1["blank"] >= GATE_RGB_MARGIN
+    return {
+        "rgb_d1": round(d1["rgb"], 4), "blank_d1": round(d1["blank"], 4), "passed": bool(passed),
+        "rule": f"rgb_d1 >= {GATE_RGB_D1} and rgb_d1 - blank_d1 >= {GATE_RGB_MARGIN} (delta<1.25 "
+                "on the held-out evaluation renders' visible images)",
+        "made_by": (f"irdepth train depth on {recipe.frames} rendered visible frames "
+                    f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
+                    f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}, "
+                    f"seed {recipe.seed}; blank: the same on a constant grey image"),
+        "encoder": ctx.base.depth.encoder, "recipe": dataclasses.asdict(recipe),
+        "pretraining_data": info["made_by"],
+    }
