@@ -104,6 +104,14 @@ def test_same_named_frames_of_two_folders_go_to_their_own_sub_folders(model, tmp
                               cv2.imread(str(out / "day2/thr" / f"000001_{kind}.png"),
                                          cv2.IMREAD_UNCHANGED)), kind
 
+    files = tmp_path / "files"  # a file named on the command line goes to its folder's name
+    code, _, err = run(["predict", "--checkpoint", model, "--out", files, "--no-progress",
+                        inputs[2], inputs[0] / "000001.png"], capsys)
+    assert code == 0, err
+    assert files_under(files) == sorted(
+        [os.path.join("thr", o) for o in outputs("000001")]
+        + [os.path.join("night", o) for n in ("000001", "000002") for o in outputs(n)])
+
 
 def test_recursive_mirrors_the_input_tree(model, tmp_path, capsys):
     """--recursive reads every folder of the tree (colour images in it skipped as usual) and
