@@ -3,7 +3,8 @@
 Every error a user can cause (unknown config key, a directory that is not a dataset, a
 checkpoint of another stage or shape, an 8-bit file given to predict, a workdir that already
 holds a run) is printed as one line ``irdepth: error: ...`` with exit code 2, before anything is
-written. Ctrl-C during training saves a checkpoint and exits with code 130. Set IRDEPTH_DEBUG=1 to
+written. Ctrl-C during training saves a checkpoint and exits with code 130. `irdepth predict`
+exits with code 1 when it skipped input files it could not read (the others are written). Set IRDEPTH_DEBUG=1 to
 get the traceback instead of the one-line message.
 
 This module is the parser (`build_parser`) and the entry point (`main`); the commands are
@@ -20,6 +21,7 @@ import sys
 import warnings
 
 from irdepth_jax.cli_commands import (
+    EXIT_SKIPPED,
     CliError,
     check_usage,
     cmd_eval,
@@ -31,7 +33,7 @@ from irdepth_jax.cli_commands import (
     load_config,
 )
 
-__all__ = ["EXIT_INTERRUPTED", "EXIT_USAGE", "CliError", "build_parser", "load_config", "main"]
+__all__ = ["EXIT_INTERRUPTED", "EXIT_SKIPPED", "EXIT_USAGE", "CliError", "build_parser", "load_config", "main"]
 
 EXIT_USAGE = 2
 EXIT_INTERRUPTED = 130
@@ -229,10 +231,13 @@ def _add_predict(sub) -> None:
                                    "16-bit TIFF (multi-page: one frame per page), .npy ((H, W) "
                                    "or (N, H, W)), FLIR .fff / .seq (needs the flir extra: "
                                    "pip install 'irdepth_jax[flir]'), FLIR radiometric JPEG "
-                                   "and DJI R-JPEG (.jpg), or folders of them. "
+                                   "and DJI R-JPEG (.jpg), ROS 1 / ROS 2 bags (--topic), or "
+                                   "folders of them. "
                                    "Writes NAME_depth.png (16-bit, metres x 256), "
                                    "NAME_depth_color.png and the pseudo-RGB / HSV images "
-                                   "(a stack's frames are NAME_p0000, NAME_p0001, ...). "
+                                   "(a stack's frames are NAME_p0000, NAME_p0001, ...); "
+                                   "frames of the same name from different inputs go to "
+                                   "sub-folders of --out named after their folders. "
                                    "Each file is written whole or not at all: a failed write "
                                    "(e.g. a full disk) stops with an error naming the file. "
                                    "A checkpoint with NaN / inf weights is refused, and a "
@@ -250,13 +255,25 @@ def _add_predict(sub) -> None:
     p.add_argument("--out", required=True, help="output directory")
     p.add_argument("--raw-bits", type=int, choices=(14, 16),
                    help="bit depth of the frames' counts (default: the model's data.raw_bits); "
-                        "a count over it is an error")
+                        "a frame with a count over it is skipped, never clipped (see --strict)")
     p.add_argument("--glob", metavar="PATTERN",
                    help="in folders, read the files matching PATTERN, e.g. '*_thr.png' "
-                        "(default: every .png .tif .tiff .npy .fff .seq file)")
+                        "(default: every .png .tif .tiff .npy .fff .seq .jpg .jpeg .bag file and ROS 2 "
+                        "bag folder)")
     p.add_argument("--strict", action="store_true",
-                   help="fail on an 8-bit or colour file in a folder (default: skip it, named "
-                        "in one summary line)")
+                   help="stop at the first file that is not a raw thermal frame of the run's "
+                        "bit depth: an 8-bit or colour file in a folder, counts over --raw-bits "
+                        "(never clipped), an unreadable file (default: skip it; the 8-bit and "
+                        "colour ones are named in one line before the run, the others with "
+                        f"their reasons in one line at its end, and the exit status is then "
+                        f"{EXIT_SKIPPED})")
+    p.add_argument("--topic", metavar="TOPIC",
+                   help="ROS 1 / ROS 2 bags: the thermal image topic, e.g. /thermal/image_raw "
+                        "(mono16 sensor_msgs/Image; default: the bag's one image topic; needs "
+                        "pip install 'irdepth_jax[rosbag]')")
+    p.add_argument("--recursive", "-r", action="store_true",
+                   help="read the folders' sub-folders too; the outputs mirror the tree under "
+                        "--out")
     p.add_argument("--batch-size", type=int, default=None, metavar="N",
                    help=f"frames per model call (default {DEFAULT_BATCH['cpu']} on a CPU, the "
                         f"fastest measured there; {DEFAULT_BATCH['gpu']} on a GPU); frames are grouped "

@@ -292,22 +292,29 @@ def cmd_eval(args) -> int:
     return 0
 
 
+EXIT_SKIPPED = 1
+"""`irdepth predict`'s exit status when it skipped input files it could not read as raw frames
+(the rest predicted and written)."""
+
+
 def cmd_predict(args) -> int:
     from irdepth_jax.predict import predict_files
 
-    written = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
-                            raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
-                            batch_size=args.batch_size, video=args.video,
-                            depth_png_frames=args.depth_png, fps=args.fps,
-                            progress=not args.no_progress, intrinsics=args.intrinsics,
-                            depth_range=args.depth_range, cmap=args.cmap)
+    result = predict_files(args.checkpoint, args.inputs, args.out, _overrides(args.overrides),
+                           raw_bits=args.raw_bits, pattern=args.glob, strict=args.strict,
+                           batch_size=args.batch_size, video=args.video,
+                           depth_png_frames=args.depth_png, fps=args.fps,
+                           progress=not args.no_progress, intrinsics=args.intrinsics,
+                           depth_range=args.depth_range, cmap=args.cmap,
+                           recursive=args.recursive, topic=args.topic)
+    written = result.written
     videos = sum(f.endswith(".mp4") for f in written)
     what = (f"{counted(videos, 'video')} and {counted(len(written) - videos, 'file')}"
             if args.video else counted(len(written), "file"))
     if not args.video and not any("_depth" in os.path.basename(f) for f in written):
         what += " (pseudo-RGB and HSV images, no depth: a Stage I model)"
     print(f"wrote {what} to {args.out}")
-    return 0
+    return EXIT_SKIPPED if result.unreadable else 0
 
 
 def cmd_export(args) -> int:

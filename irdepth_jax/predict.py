@@ -27,7 +27,7 @@ from concurrent.futures import Future, ThreadPoolExecutor
 import numpy as np
 
 from irdepth_jax.config import Config
-from irdepth_jax.data.inputs import ThermalInput, thermal_inputs
+from irdepth_jax.data.inputs import ThermalInput, is_folder, thermal_inputs, unreadable_summary
 from irdepth_jax.data.loader import prefetch
 from irdepth_jax.depth_colours import DepthColours, depth_colours
 from irdepth_jax.errors import RunError
@@ -62,11 +62,13 @@ def display_raw(raw: np.ndarray, bits: int) -> np.ndarray:
 # --------------------------------------------------------------------------- the model
 @dataclasses.dataclass(frozen=True)
 class Frame:
-    """One raw frame to predict: its input file, output name and counts (H, W) uint16."""
+    """One raw frame to predict: its input file, output name, counts (H, W) uint16 and output
+    folder (relative to --out)."""
 
     file: str
     name: str
     raw: np.ndarray
+    out_dir: str = ""
 
 
 class Predictor:
@@ -188,12 +190,13 @@ def video_panels(raw: np.ndarray, images: dict, bits: int, colours: DepthColours
 
 
 # --------------------------------------------------------------------------- batching
-def _frames(files: Sequence[str], bits: int) -> Iterator[Frame]:
+def _frames(sequences: Sequence[ThermalInput], bits: int, topic: str | None) -> Iterator[Frame]:
     from irdepth_jax.data.rawio import read_frames
 
-    for f in files:
-        for name, raw in read_frames(f, bits):
-            yield Frame(f, name, raw)
+    for sequence in sequences:
+        for f in sequence.files:
+            for name, raw in read_frames(f, bits, topic):
+                yield Frame(f, name, raw, sequence.out_dir)
 
 
 def batches(frames: Iterator[Frame], sizes: dict) -> Iterator[tuple[list[Frame], int]]:
@@ -306,13 +309,24 @@ class _Writers:
 
 
 # --------------------------------------------------------------------------- predict
+@dataclasses.dataclass(frozen=True)
+class Predicted:
+    """What `predict_files` did: the files it wrote, and the input files it left out."""
+
+    written: list[str]
+    unreadable: tuple[tuple[str, str], ...]
+    """(file, reason) of each input file skipped as not a readable raw frame of the run's bit
+    depth (`data.inputs.FoundInputs.unreadable`)."""
+
+
 def predict_files(path: str, inputs: Sequence[str], out_dir: str,
                   overrides: Sequence[str] = (), raw_bits: int | None = None,
                   pattern: str | None = None, strict: bool = False,
                   batch_size: int | None = None, video: bool = False,
                   depth_png_frames: bool = False, fps: float = DEFAULT_FPS,
                   progress: bool = False, intrinsics: str | None = None,
-                  depth_range: str | None = None, cmap: str = "turbo") -> list[str]:
+                  depth_range: str | None = None, cmap: str = "turbo",
+                  recursive: bool = False, topic: str | None = None) -> Predicted:
     """Runs a trained model on raw frames and writes its outputs (see the module docstring).
 
     Args:
@@ -321,9 +335,11 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
       out_dir: output directory.
       overrides: ``key=value`` config overrides.
       raw_bits: bit depth of the inputs' counts, 14 or 16 (default: the model's
-        data.raw_bits); a count over it is an error.
-      pattern, strict: which files of a folder are read, and whether a non-thermal one is an
-        error (see `thermal_inputs`).
+        data.raw_bits); a frame with a count over it is skipped (`strict`: an error).
+      pattern, strict, recursive: which files of a folder are read (with `recursive` those of
+        its sub-folders too, their outputs in the same sub-folders of `out_dir`), and whether a
+        non-thermal or unreadable one is an error (else it is skipped; see `thermal_inputs`).
+      topic: the image topic of ROS bags among the inputs (None: each bag's one image topic).
       batch_size: frames per model call (frames of one size; outputs do not depend on it);
         None: `default_batch_size()`.
       video: one MP4 per input sequence instead of per-frame images; `depth_png_frames`
@@ -335,7 +351,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
       depth_range, cmap: how the coloured depth is drawn (`depth_colours.depth_colours`: None,
         'auto' or 'MIN:MAX'; a matplotlib colour map), with a colour bar under it.
     Returns:
-      the written paths. All inputs are read (and checked) before anything is written.
+      the written paths and the skipped files (`Predicted`); a line on stderr names the skipped
+      files at the end. All inputs are read (and checked) before anything is written.
     Raises:
       RunError naming the input file when a prediction is not finite (NaN / inf), before that
       frame's files are written; WriteError naming the output file when it cannot be written
@@ -354,7 +371,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
 
         if fps_problem(fps):
             raise RunError(f"--fps {fps:g}: {fps_problem(fps)}")
-    _check_out_is_no_input(out_dir, inputs)
+    _check_out_is_no_input(out_dir, inputs, recursive)
     cfg, _, model = load_model(path, overrides)
     if model["depth"] is None and depth_png_frames:
         raise RunError(f"--depth-png: {path} is a Stage I model, it has no depth output")
@@ -375,7 +392,8 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     bits = trained_bits if raw_bits is None else raw_bits
     if bits not in BIT_DEPTHS:
         raise RunError(f"--raw-bits {bits}: choose 14 or 16")
-    found = thermal_inputs(inputs, bits, pattern, strict)
+    inputs_found = thermal_inputs(inputs, bits, pattern, strict, recursive, topic)
+    found = inputs_found.sequences
     if video:
         _check_sequences(found)
     if bits != trained_bits:
@@ -411,27 +429,32 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         if video:
             for sequence in found:
                 _predict_video(predictor, sequence, out_dir, batch_size, fps, depth_png_frames,
-                               writers, bar, colours)
+                               writers, bar, colours, topic)
         else:
-            files = [f for sequence in found for f in sequence.files]
+            for sequence in found:
+                make_dirs(os.path.join(out_dir, sequence.out_dir))
 
             def emit(frame: Frame, images: dict) -> None:
+                stem = os.path.join(out_dir, frame.out_dir, frame.name)
                 for kind, image in output_pngs(images, colours, depth_suffix(cfg)).items():
-                    writers.submit(os.path.join(out_dir, f"{frame.name}_{kind}.png"), image)
+                    writers.submit(f"{stem}_{kind}.png", image)
                 if camera is not None:
                     colors = _to8(images["rgb"]) if "rgb" in images else display_raw(frame.raw, bits)
-                    writers.submit_bytes(os.path.join(out_dir, f"{frame.name}.ply"),
+                    writers.submit_bytes(f"{stem}.ply",
                                          point_cloud_ply(images["depth"], colors, camera))
                 bar.update(1)
 
             _Pipelined(predictor, emit).run(
-                batches(prefetch(_frames(files, bits), READ_AHEAD * batch_size, "irdepth-read"), sizes))
+                batches(prefetch(_frames(found, bits, topic), READ_AHEAD * batch_size, "irdepth-read"), sizes))
         writers.check()
     finally:
         writers.close()
         bar.close()
         release(lock)
-    return writers.written
+    summary = unreadable_summary(inputs_found)
+    if summary:
+        print(summary, file=sys.stderr)
+    return Predicted(writers.written, inputs_found.unreadable)
 
 
 def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
@@ -447,20 +470,28 @@ def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set)
         print(f"irdepth: WARNING: {line}", file=sys.stderr)
 
 
-def _check_out_is_no_input(out_dir: str, inputs: Sequence[str]) -> None:
-    """RunError when `out_dir` is one of the input folders: a later run on that folder would
-    read the outputs (16-bit NAME_depth.png among them) as raw frames."""
+def _check_out_is_no_input(out_dir: str, inputs: Sequence[str], recursive: bool) -> None:
+    """RunError when `out_dir` is one of the input folders (with `recursive`, or inside one): a
+    later run on that folder would read the outputs (16-bit NAME_depth.png among them) as raw
+    frames."""
     out = os.path.realpath(out_dir)
     for item in inputs:
-        if os.path.isdir(item) and os.path.realpath(item) == out:
-            raise RunError(f"--out {out_dir} is the input folder {item}: a later run on it would "
-                           "read these outputs as raw frames; choose another --out folder")
+        folder = os.path.realpath(item)
+        if is_folder(item) and (out == folder or recursive and out.startswith(folder + os.sep)):
+            where = "the input folder" if out == folder else "inside the input folder"
+            raise RunError(f"--out {out_dir} is {where} {item}: a later run on it would read "
+                           "these outputs as raw frames; choose another --out folder")
 
 
 def video_name(sequence: ThermalInput) -> str:
-    """The video file name of an input: the folder's or the stack file's name, ``.mp4``."""
+    """The video of a sequence, relative to --out: ``OUT_DIR.mp4`` for a folder with its own
+    output folder (--recursive, or same-named inputs), else the folder's or the stack file's
+    name ``.mp4`` in its output folder."""
+    if is_folder(sequence.item) and sequence.out_dir:
+        return os.path.normpath(sequence.out_dir) + ".mp4"
     base = os.path.basename(os.path.normpath(sequence.item))
-    return (base if os.path.isdir(sequence.item) else os.path.splitext(base)[0]) + ".mp4"
+    base = base if is_folder(sequence.item) else os.path.splitext(base)[0]
+    return os.path.join(sequence.out_dir, base + ".mp4")
 
 
 def _check_sequences(found: Sequence[ThermalInput]) -> None:
@@ -485,22 +516,25 @@ def _check_sequences(found: Sequence[ThermalInput]) -> None:
 
 def _predict_video(predictor: Predictor, sequence: ThermalInput, out_dir: str,
                    batch_size: int, fps: float, with_depth_png: bool, writers: _Writers,
-                   bar, colours: DepthColours) -> None:
+                   bar, colours: DepthColours, topic: str | None) -> None:
     """Writes the MP4 of one sequence (and its depth PNGs when asked), frames in order."""
     from irdepth_jax.video import VideoWriter
 
     target = os.path.join(out_dir, video_name(sequence))
+    make_dirs(os.path.dirname(target))
+    if with_depth_png:
+        make_dirs(os.path.join(out_dir, sequence.out_dir))
     sizes = batch_sizes([sequence], batch_size)
     video = VideoWriter(target, fps)
 
     def emit(frame: Frame, images: dict) -> None:
         video.write(video_panels(frame.raw, images, predictor.bits, colours))
         if with_depth_png and "depth" in images:
-            writers.submit(os.path.join(out_dir, f"{frame.name}_{depth_suffix(predictor.cfg)}.png"),
-                           depth_png(images["depth"]))
+            name = f"{frame.name}_{depth_suffix(predictor.cfg)}.png"
+            writers.submit(os.path.join(out_dir, frame.out_dir, name), depth_png(images["depth"]))
         bar.update(1)
 
-    frames = prefetch(_frames(sequence.files, predictor.bits), READ_AHEAD * batch_size,
+    frames = prefetch(_frames([sequence], predictor.bits, topic), READ_AHEAD * batch_size,
                       "irdepth-read")
     try:
         _Pipelined(predictor, emit).run(batches(frames, sizes))

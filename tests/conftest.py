@@ -82,6 +82,23 @@ def _made_once(tmp_path_factory, name: str, make):
 
 
 @pytest.fixture(scope="session")
+def untrained_model(tmp_path_factory):
+    """(workdir, unet variables, depth params) of the shared untrained tiny Stage II model
+    (`trained_runs.untrained_stage2`: random UNet and Depth Anything V2), for the tests of what
+    predict reads and writes."""
+    from trained_runs import untrained_stage2
+
+    from irdepth_jax.config import get_config
+    from irdepth_jax.train.variables import load_model
+
+    work = _made_once(tmp_path_factory, "shared_untrained",
+                      lambda w: untrained_stage2(w, get_config("tiny")))
+    model = load_model(str(work))[2]
+    for path in _read_only(work, "untrained model"):
+        yield path, model["unet"], model["depth"]
+
+
+@pytest.fixture(scope="session")
 def synthetic_data(tmp_path_factory):
     """The shared synthetic dataset (`trained_runs.DATA`: 24 frames of 32x48, 12 labelled)."""
     from trained_runs import write_data

@@ -162,13 +162,13 @@ def test_predict_rejects_8bit_files(stage1_run, tmp_path, capsys):
     assert not (tmp_path / "pred").exists()
 
 
-def test_predict_rejects_inputs_with_the_same_name(stage1_run, tmp_path, capsys):
-    for folder in ("a", "b"):
-        (tmp_path / folder).mkdir()
-        np.save(tmp_path / folder / "frame.npy", np.full((32, 48), 9000, np.uint16))
+def test_predict_rejects_frames_of_the_same_name_in_one_folder(stage1_run, tmp_path, capsys):
+    """(Same-named frames of different inputs go to sub-folders: tests/test_predict_folders.py.)"""
+    np.save(tmp_path / "frame.npy", np.full((32, 48), 9000, np.uint16))
+    cv2.imwrite(str(tmp_path / "frame.png"), np.full((32, 48), 9000, np.uint16))
     code, _, err = run(["predict", "--checkpoint", stage1_run, "--out", tmp_path / "pred",
-                        tmp_path / "a", tmp_path / "b" / "frame.npy"], capsys)
-    one_line_error(code, err, str(tmp_path / "b" / "frame.npy"), "same name 'frame'")
+                        tmp_path], capsys)
+    one_line_error(code, err, str(tmp_path / "frame.png"), "same name 'frame'")
     assert not (tmp_path / "pred").exists()
 
 

@@ -1,7 +1,9 @@
-"""Executes notebooks/*.ipynb on tiny settings (nbclient, kernel python3) into temporary copies.
+"""The notebooks: committed with the outputs of one run each (`python notebooks/regenerate.py`),
+and executed here on tiny settings (nbclient, kernel python3) into temporary copies.
 
 The quickstart runs on the session's trained `workflow.train_and_evaluate` run (conftest
-`learned_run`); the ablations notebook reads the committed results in experiments/results/.
+`learned_run`), found as an `irdepth quickstart` run; the ablations notebook reads the committed
+results in experiments/results/.
 """
 
 from __future__ import annotations
@@ -17,12 +19,16 @@ REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 NOTEBOOKS = os.path.join(REPO, "notebooks")
 
 
-def execute(name: str, out_dir) -> nbformat.NotebookNode:
-    """Runs notebooks/<name> in a python3 kernel (cwd notebooks/), writes the executed copy to
+NOTEBOOK_BYTES = 1_500_000
+"""Most bytes the committed notebooks may take together (their PNGs at modest dpi)."""
+
+
+def execute(name: str, out_dir, cwd: str = NOTEBOOKS) -> nbformat.NotebookNode:
+    """Runs notebooks/<name> in a python3 kernel (in `cwd`), writes the executed copy to
     `out_dir` and returns it; a failing cell raises with its traceback."""
     nb = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4)
     client = NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": NOTEBOOKS}})
+                            resources={"metadata": {"path": str(cwd)}})
     client.execute()
     nbformat.write(nb, os.path.join(str(out_dir), name))
     return nb
@@ -39,23 +45,40 @@ def text(nb) -> str:
 
 
 @pytest.mark.parametrize("name", ["quickstart.ipynb", "ablations.ipynb"])
-def test_committed_without_outputs(name):
+def test_committed_with_the_outputs_of_one_run(name):
+    """Every code cell ran once, top to bottom (execution counts 1, 2, ...), without an error;
+    the figures are there; no machine path in the outputs."""
     nb = nbformat.read(os.path.join(NOTEBOOKS, name), as_version=4)
     nbformat.validate(nb)
     code = [c for c in nb.cells if c.cell_type == "code"]
-    assert code and all(c.outputs == [] and c.execution_count is None for c in code)
+    assert [c.execution_count for c in code] == list(range(1, len(code) + 1))
+    assert not any(o.output_type == "error" for c in code for o in c.outputs)
     assert any("parameters" in c.metadata.get("tags", []) for c in code)
+    assert images(nb) >= 3
+    out = text(nb)
+    assert "/tmp/" not in out and "/home/" not in out and "/work/" not in out
+    if name == "quickstart.ipynb":  # of an `irdepth quickstart` run, not a QUICK plumbing run
+        assert "run: ../irdepth_quickstart | stage: stage2 | preset: tiny" in out
+
+
+def test_committed_notebooks_are_modest():
+    total = sum(os.path.getsize(os.path.join(NOTEBOOKS, n)) for n in os.listdir(NOTEBOOKS)
+                if n.endswith(".ipynb"))
+    assert total < NOTEBOOK_BYTES, f"{total} bytes"
 
 
 def test_quickstart_runs(learned_run, monkeypatch, tmp_path):
-    """On a copy of the session's `workflow.train_and_evaluate` run: the notebook reuses a
-    WORKDIR that holds one (its training branch is that same call)."""
+    """On a copy of the session's `workflow.train_and_evaluate` run (what `irdepth quickstart`
+    runs) in irdepth_quickstart/ beside it: the notebook finds and reuses it (its training
+    branch is that same call)."""
     monkeypatch.setenv("IRDEPTH_NB_PRESET", "tiny")
     monkeypatch.setenv("IRDEPTH_NB_QUICK", "1")
-    monkeypatch.setenv("IRDEPTH_NB_WORKDIR", str(copy_run(learned_run[0], tmp_path / "run")))
-    nb = execute("quickstart.ipynb", tmp_path)
+    monkeypatch.delenv("IRDEPTH_NB_WORKDIR", raising=False)
+    copy_run(learned_run[0], tmp_path / "irdepth_quickstart")
+    nb = execute("quickstart.ipynb", tmp_path, cwd=tmp_path)
     assert images(nb) >= 3  # scenes, H/S/V + pseudo-RGB, depth maps
     out = text(nb)
+    assert "run: irdepth_quickstart | stage: stage2" in out
     assert "these scenes:" in out and "abs_rel" in out
     # the test split by condition: all, then those of its frames (24 rendered frames: a few)
     assert "\nall   " in out

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 import tifffile
-from trained_runs import untrained_stage2
 
 from irdepth_jax import cli
 from irdepth_jax.config import get_config
@@ -35,9 +34,9 @@ def read(path):
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
+def model(untrained_model):
     """(workdir, unet variables, depth params) of an untrained tiny Stage II model."""
-    return untrained_stage2(tmp_path_factory.mktemp("untrained") / "run", CFG)
+    return untrained_model
 
 
 @pytest.fixture(scope="module")

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from ms2_layout import LIST_NAMES, partial_ms2
 from PIL import Image
-from trained_runs import untrained_stage2
 
 from irdepth_jax import cli
 from irdepth_jax.config import apply_overrides, get_config
@@ -32,9 +31,9 @@ def run(argv, capsys):
 
 
 @pytest.fixture(scope="module")
-def model(tmp_path_factory):
+def model(untrained_model):
     """(workdir, unet variables, depth params) of an untrained tiny Stage II model."""
-    return untrained_stage2(tmp_path_factory.mktemp("untrained") / "run", CFG)
+    return untrained_model
 
 
 @pytest.fixture(scope="module")

@@ -169,7 +169,7 @@ def test_predict_multipage_16bit_tiff(run16, tmp_path, capsys):
 def test_predict_notes_a_bit_depth_the_fixed_scale_model_did_not_see(run16, tmp_path, capsys):
     np.save(tmp_path / "f.npy", np.full((H, W), 9000, np.uint16))
     written = predict_files(str(run16), [str(tmp_path / "f.npy")], str(tmp_path / "p"),
-                            overrides=["unet.raw_scale=fixed"], raw_bits=14)
+                            overrides=["unet.raw_scale=fixed"], raw_bits=14).written
     assert len(written) == 2
     err = capsys.readouterr().err
     assert "trained on 16-bit counts with unet.raw_scale=fixed; --raw-bits 14 feeds it " \

@@ -68,7 +68,7 @@ def test_two_predicts_into_one_out_folder(model, tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(predict, "write_png", held_write)
     out, result = tmp_path / "out", {}
     first = threading.Thread(target=lambda: result.update(
-        written=predict.predict_files(str(model), [str(a)], str(out))))
+        written=predict.predict_files(str(model), [str(a)], str(out)).written))
     first.start()
     try:
         assert writing.wait(120)

@@ -12,6 +12,9 @@ Formats, by suffix (`RAW_SUFFIXES`):
   `flirpy` package (``pip install 'irdepth_jax[flir]'``): the sensor counts, not temperatures.
 * ``.jpg`` / ``.jpeg``: FLIR radiometric JPEGs and DJI R-JPEGs (their raw counts, parsed by
   `irdepth_jax.data.thermal_jpeg`); a JPEG without raw counts is a visible photo.
+* ``.bag`` and ROS 2 bag folders: the mono16 ``sensor_msgs/msg/Image`` messages of one topic
+  (`irdepth_jax.data.rosbag`, through the optional `rosbags` package: ``pip install
+  'irdepth_jax[rosbag]'``).
 
 A file holding one frame gives one frame named by the file stem; a stack gives frames named
 ``STEM_p0000``, ``STEM_p0001``, ... (page / frame index from 0).
@@ -32,7 +35,7 @@ import numpy as np
 
 from irdepth_jax.imaging.raw import BIT_DEPTHS, RAW_MAX, check_raw
 
-RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fff", ".seq", ".jpg", ".jpeg")
+RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fff", ".seq", ".jpg", ".jpeg", ".bag")
 """File suffixes `read_frames` reads (lower case; matched case-insensitively)."""
 
 RAW_BITS_SETTINGS = BIT_DEPTHS + ("auto",)
@@ -79,12 +82,14 @@ def detect_raw_bits(dataset, indices, max_frames: int = AUTO_SAMPLE) -> int:
     return 16 if any(int(dataset.raw(int(i)).max()) > RAW_MAX for i in indices) else 14
 
 
-def read_frames(path: str, bits: int = 14) -> list[tuple[str, np.ndarray]]:
+def read_frames(path: str, bits: int = 14, topic: str | None = None
+                ) -> list[tuple[str, np.ndarray]]:
     """The raw frames of one file (formats in the module docstring).
 
     Args:
-      path: the file.
+      path: the file (or a ROS 2 bag's folder).
       bits: bit depth of the counts, 14 or 16: a count over 2^bits - 1 is an error.
+      topic: a ROS bag's image topic (`data.rosbag.read_bag`; None: its one image topic).
     Returns:
       [(name, (H, W) uint16 counts)]: one entry named by the file stem for a single frame, or
       ``STEM_pNNNN`` per frame of a stack.
@@ -93,14 +98,22 @@ def read_frames(path: str, bits: int = 14) -> list[tuple[str, np.ndarray]]:
       RawFileError: an unknown suffix, an unreadable file, a float / negative / over-`bits`
         frame, or a FLIR file without flirpy installed.
     """
-    stem, suffix = os.path.splitext(os.path.basename(path))
+    from irdepth_jax.data.rosbag import BagError, is_bag, read_bag
+
+    stem, suffix = os.path.splitext(os.path.basename(os.path.normpath(path)))
     suffix = suffix.lower()
     readers = {".png": _png, ".tif": _tiff, ".tiff": _tiff, ".npy": _npy, ".fff": _flir,
                ".seq": _flir, ".jpg": _thermal_jpeg, ".jpeg": _thermal_jpeg}
-    if suffix not in readers:
+    if is_bag(path):
+        try:
+            arrays = read_bag(path, topic)
+        except BagError as err:
+            raise RawFileError(str(err)) from None
+    elif suffix in readers:
+        arrays = readers[suffix](path)
+    else:
         raise RawFileError(f"{path}: unknown raw frame type {suffix or '(no suffix)'!r} "
                            f"(read: {', '.join(RAW_SUFFIXES)})")
-    arrays = readers[suffix](path)
     if not arrays:
         raise RawFileError(f"{path}: holds no frame")
     if len(arrays) == 1:
