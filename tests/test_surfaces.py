@@ -5,6 +5,7 @@ a packet is written) are made deterministic with hooks. The shared tiny trained 
 (`trained_runs`): these tests check what is written and said, not what a model learnt."""
 
 import os
+import pathlib
 import threading
 
 import cv2
@@ -346,6 +347,51 @@ def test_a_cached_run_is_trained_by_one_runner(tmp_path):
         release(lock)
     assert Context._train(runner, lambda *a: trained.append(a), "stage1", cfg, opts) == 12.5
     assert trained == [] and not (workdir / "irdepth.lock").exists()
+
+
+def test_a_dataset_rendered_by_two_runners_at_once_is_never_rewritten(tmp_path, monkeypatch):
+    """Two experiment runners on one --cache that both find the synthetic dataset missing: the
+    second renders it while the first is rendering (a hook runs the first, whole, inside the
+    second's render); the dataset the first returned, and may read, stays as it was (the same
+    files, not re-written under it), and nothing else is left in the cache's data folder.
+    Before, both rendered into the dataset's own folder, the second deleting the first's."""
+    import dataclasses
+    import types
+
+    from experiments.cache import Context
+    from irdepth_jax.config import get_config
+    from irdepth_jax.data import synthetic_dataset
+
+    base = get_config("tiny")
+    base = dataclasses.replace(base, data=dataclasses.replace(base.data, height=16, width=24))
+
+    def runner():
+        return types.SimpleNamespace(base=base, cache=str(tmp_path), log=lambda line: None,
+                                     args=types.SimpleNamespace(no_progress=True))
+
+    def files(path):
+        return {str(p.relative_to(path)): p.stat().st_ino for p in sorted(path.rglob("*"))}
+
+    real_write = synthetic_dataset.write_synthetic_dataset
+    first = {}
+
+    def write_while_the_first_runner_renders(*args, **kwargs):
+        if not first:  # the second runner's render, started: the first runs whole meanwhile
+            first["path"] = None
+            first["path"], _ = Context._render(runner(), "synthetic", 3, 2, 0, None)
+            first["files"] = files(pathlib.Path(first["path"]))
+        return real_write(*args, **kwargs)
+
+    monkeypatch.setattr(synthetic_dataset, "write_synthetic_dataset", write_while_the_first_runner_renders)
+    second, _ = Context._render(runner(), "synthetic", 3, 2, 0, None)
+    assert second == first["path"]
+    dataset = pathlib.Path(second)
+    assert "manifest.json" in first["files"] and len(first["files"]) > 3
+    assert files(dataset) == first["files"]  # not one file replaced or removed
+    assert os.listdir(dataset.parent) == [dataset.name]
+    (dataset.parent / "eval-n3-16x24-seed0").mkdir()  # an older version's interrupted render
+    with pytest.raises(SystemExit, match=r"eval-n3-16x24-seed0: an incomplete dataset \(no manifest"):
+        Context._render(runner(), "eval-n3", 3, 3, 0, "test")
 
 
 # --------------------------------------------------------------------------- extras
