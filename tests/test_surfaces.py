@@ -4,6 +4,7 @@ in "wrote" for work that did not happen. Timing-dependent cases (two runs at onc
 a packet is written) are made deterministic with hooks. The shared tiny trained runs
 (`trained_runs`): these tests check what is written and said, not what a model learnt."""
 
+import json
 import os
 import pathlib
 import threading
@@ -217,9 +218,10 @@ def test_a_stage1_model_says_it_has_no_depth(stage1_run, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- 6. MS2 without depth
-def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_path, capsys):
+def test_ms2_frames_without_depth_are_counted_and_strict_refuses(stage1_run, realdata, tmp_path, capsys):
     """4 of the 6 thermal frames of test_day (3 sequences of 2 frames) have no depth file: one
-    warning line counts them (the 2 left are read); --strict refuses."""
+    warning line counts them (the 2 left are read), from the reader and from `irdepth eval`;
+    --strict refuses, in eval and in train (before training)."""
     from ms2_layout import official_sequences, partial_ms2
 
     from irdepth_jax.data.folder import DatasetWarning
@@ -229,7 +231,7 @@ def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_p
     lists = realdata / "ms2_lists"
     sequences = official_sequences(lists, "test_day_list.txt")
     assert len(sequences) == 3
-    root = partial_ms2(lists, tmp_path / "ms2", sequences, frames=2)
+    root = partial_ms2(lists, tmp_path / "ms2", sequences, frames=2, size=(HEIGHT, WIDTH))
     for seq in sequences[:2]:
         for k in range(2):
             (root / "proj_depth" / seq / "thr" / "depth_filtered" / f"{k:06d}.png").unlink()
@@ -243,6 +245,23 @@ def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_p
         MS2Dataset(root, "test_day", strict=True)
     with pytest.raises(ValueError, match="4 of 6 thermal frames of split 'test_day' have no depth"):
         DataSource(str(root), strict=True).frames("test_day")
+
+    evaluate = ["eval", "--workdir", stage1_run, "--data", root, "--split", "test_day"]
+    code, _, err = run([*evaluate, "--out", tmp_path / "e"], capsys)
+    assert code == 0, err
+    assert [ln for ln in err.splitlines() if "depth file" in ln] == [
+        f"irdepth: warning: {want}, skipped"], err
+    result = json.loads((tmp_path / "e" / "eval_test_day.json").read_text())
+    assert result["protocol"]["frames"] == 2 and result["stage1"]["all"]["count"] == 2
+    code, _, err = run([*evaluate, "--strict", "--out", tmp_path / "strict"], capsys)
+    assert code == 2 and want in one_error_line(err)
+    assert not (tmp_path / "strict" / "eval_test_day.json").exists()
+    for split in ("train", "val"):  # the same three sequences
+        (root / f"{split}_list.txt").write_text("\n".join(sequences) + "\n")
+    code, _, err = run(["train", "stage1", "--data", root, "--workdir", tmp_path / "w", "--strict"],
+                       capsys)
+    assert code == 2 and "4 of 6 thermal frames of split 'train' have no depth" in one_error_line(err)
+    assert not (tmp_path / "w").exists()
 
 
 # --------------------------------------------------------------------------- 4. data of a resume
