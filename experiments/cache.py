@@ -5,7 +5,9 @@ Layout of a cache directory (``--cache``, default ``workdir/experiments``):
 * ``data/synthetic-...``: the synthetic benchmark's training data (the preset's frame count and
   size, dataset seed `DATA_SEED`) and, apart from it, its evaluation set ``data/eval-...``
   (`--eval-frames` test frames, all labelled, dataset seed `EVAL_SEED`: evaluation is cheap, so
-  the test set is large and the metrics' frame noise small);
+  the test set is large and the metrics' frame noise small); each is rendered into a temporary
+  folder beside it and renamed into place whole, so runners sharing a cache never read a
+  half-written dataset;
 * ``runs/<kind>-<hash>/``: one training run per (kind, full config, training data); the hash
   covers every config field, so a run is reused by every table that needs it (the Stage I model
   of a seed is shared by tables 1-7) and an interrupted run resumes from its last checkpoint;
@@ -26,11 +28,13 @@ from it, as the paper's from the released weights: `experiments.depth_network`).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import hashlib
 import json
 import os
 import shutil
+import tempfile
 import time
 from collections.abc import Callable
 
@@ -149,11 +153,27 @@ class Context:
                 "height": d.height, "width": d.width, "seed": seed, "split": split, "scenes": d.scenes,
                 "made_by": f"write_synthetic_dataset(path, {n}, {labeled}, {d.height}, {d.width}, "
                            f"seed={seed}, split={split!r}, scenes={d.scenes!r})"}
-        if not os.path.exists(os.path.join(path, "manifest.json")):  # manifest is written last
-            self.log(f"rendering {n} synthetic frames ({d.height}x{d.width}) into {path}")
-            write_synthetic_dataset(path, n, labeled, d.height, d.width, seed=seed,
-                                    progress=not self.args.no_progress, overwrite=True, split=split,
+        if os.path.exists(os.path.join(path, "manifest.json")):
+            return path, info
+        if os.path.exists(path):
+            raise SystemExit(f"{path}: an incomplete dataset (no manifest.json: a render "
+                             "interrupted by an older version); delete it and re-run")
+        # rendered beside its place and renamed into it, whole: runners on one --cache that
+        # render it at once never see (or rewrite) a half-written dataset; the first rename wins
+        self.log(f"rendering {n} synthetic frames ({d.height}x{d.width}) into {path}")
+        os.makedirs(os.path.dirname(path), exist_ok=True)
+        rendering = tempfile.mkdtemp(prefix=f"{os.path.basename(path)}.rendering-",
+                                     dir=os.path.dirname(path))
+        try:
+            write_synthetic_dataset(rendering, n, labeled, d.height, d.width, seed=seed,
+                                    progress=not self.args.no_progress, split=split,
                                     scenes=d.scenes)
+            with contextlib.suppress(OSError):  # another runner's rename came first
+                os.rename(rendering, path)
+        finally:
+            shutil.rmtree(rendering, ignore_errors=True)
+        if not os.path.exists(os.path.join(path, "manifest.json")):
+            raise SystemExit(f"{path}: could not move the rendered dataset into place")
         return path, info
 
     # ---------------------------------------------------------------- configs

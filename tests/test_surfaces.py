@@ -4,7 +4,9 @@ in "wrote" for work that did not happen. Timing-dependent cases (two runs at onc
 a packet is written) are made deterministic with hooks. The shared tiny trained runs
 (`trained_runs`): these tests check what is written and said, not what a model learnt."""
 
+import json
 import os
+import pathlib
 import threading
 
 import cv2
@@ -216,9 +218,10 @@ def test_a_stage1_model_says_it_has_no_depth(stage1_run, tmp_path, capsys):
 
 
 # --------------------------------------------------------------------------- 6. MS2 without depth
-def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_path, capsys):
+def test_ms2_frames_without_depth_are_counted_and_strict_refuses(stage1_run, realdata, tmp_path, capsys):
     """4 of the 6 thermal frames of test_day (3 sequences of 2 frames) have no depth file: one
-    warning line counts them (the 2 left are read); --strict refuses."""
+    warning line counts them (the 2 left are read), from the reader and from `irdepth eval`;
+    --strict refuses, in eval and in train (before training)."""
     from ms2_layout import official_sequences, partial_ms2
 
     from irdepth_jax.data.folder import DatasetWarning
@@ -228,7 +231,7 @@ def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_p
     lists = realdata / "ms2_lists"
     sequences = official_sequences(lists, "test_day_list.txt")
     assert len(sequences) == 3
-    root = partial_ms2(lists, tmp_path / "ms2", sequences, frames=2)
+    root = partial_ms2(lists, tmp_path / "ms2", sequences, frames=2, size=(HEIGHT, WIDTH))
     for seq in sequences[:2]:
         for k in range(2):
             (root / "proj_depth" / seq / "thr" / "depth_filtered" / f"{k:06d}.png").unlink()
@@ -242,6 +245,23 @@ def test_ms2_frames_without_depth_are_counted_and_strict_refuses(realdata, tmp_p
         MS2Dataset(root, "test_day", strict=True)
     with pytest.raises(ValueError, match="4 of 6 thermal frames of split 'test_day' have no depth"):
         DataSource(str(root), strict=True).frames("test_day")
+
+    evaluate = ["eval", "--workdir", stage1_run, "--data", root, "--split", "test_day"]
+    code, _, err = run([*evaluate, "--out", tmp_path / "e"], capsys)
+    assert code == 0, err
+    assert [ln for ln in err.splitlines() if "depth file" in ln] == [
+        f"irdepth: warning: {want}, skipped"], err
+    result = json.loads((tmp_path / "e" / "eval_test_day.json").read_text())
+    assert result["protocol"]["frames"] == 2 and result["stage1"]["all"]["count"] == 2
+    code, _, err = run([*evaluate, "--strict", "--out", tmp_path / "strict"], capsys)
+    assert code == 2 and want in one_error_line(err)
+    assert not (tmp_path / "strict" / "eval_test_day.json").exists()
+    for split in ("train", "val"):  # the same three sequences
+        (root / f"{split}_list.txt").write_text("\n".join(sequences) + "\n")
+    code, _, err = run(["train", "stage1", "--data", root, "--workdir", tmp_path / "w", "--strict"],
+                       capsys)
+    assert code == 2 and "4 of 6 thermal frames of split 'train' have no depth" in one_error_line(err)
+    assert not (tmp_path / "w").exists()
 
 
 # --------------------------------------------------------------------------- 4. data of a resume
@@ -346,6 +366,51 @@ def test_a_cached_run_is_trained_by_one_runner(tmp_path):
         release(lock)
     assert Context._train(runner, lambda *a: trained.append(a), "stage1", cfg, opts) == 12.5
     assert trained == [] and not (workdir / "irdepth.lock").exists()
+
+
+def test_a_dataset_rendered_by_two_runners_at_once_is_never_rewritten(tmp_path, monkeypatch):
+    """Two experiment runners on one --cache that both find the synthetic dataset missing: the
+    second renders it while the first is rendering (a hook runs the first, whole, inside the
+    second's render); the dataset the first returned, and may read, stays as it was (the same
+    files, not re-written under it), and nothing else is left in the cache's data folder.
+    Before, both rendered into the dataset's own folder, the second deleting the first's."""
+    import dataclasses
+    import types
+
+    from experiments.cache import Context
+    from irdepth_jax.config import get_config
+    from irdepth_jax.data import synthetic_dataset
+
+    base = get_config("tiny")
+    base = dataclasses.replace(base, data=dataclasses.replace(base.data, height=16, width=24))
+
+    def runner():
+        return types.SimpleNamespace(base=base, cache=str(tmp_path), log=lambda line: None,
+                                     args=types.SimpleNamespace(no_progress=True))
+
+    def files(path):
+        return {str(p.relative_to(path)): p.stat().st_ino for p in sorted(path.rglob("*"))}
+
+    real_write = synthetic_dataset.write_synthetic_dataset
+    first = {}
+
+    def write_while_the_first_runner_renders(*args, **kwargs):
+        if not first:  # the second runner's render, started: the first runs whole meanwhile
+            first["path"] = None
+            first["path"], _ = Context._render(runner(), "synthetic", 3, 2, 0, None)
+            first["files"] = files(pathlib.Path(first["path"]))
+        return real_write(*args, **kwargs)
+
+    monkeypatch.setattr(synthetic_dataset, "write_synthetic_dataset", write_while_the_first_runner_renders)
+    second, _ = Context._render(runner(), "synthetic", 3, 2, 0, None)
+    assert second == first["path"]
+    dataset = pathlib.Path(second)
+    assert "manifest.json" in first["files"] and len(first["files"]) > 3
+    assert files(dataset) == first["files"]  # not one file replaced or removed
+    assert os.listdir(dataset.parent) == [dataset.name]
+    (dataset.parent / "eval-n3-16x24-seed0").mkdir()  # an older version's interrupted render
+    with pytest.raises(SystemExit, match=r"eval-n3-16x24-seed0: an incomplete dataset \(no manifest"):
+        Context._render(runner(), "eval-n3", 3, 3, 0, "test")
 
 
 # --------------------------------------------------------------------------- extras

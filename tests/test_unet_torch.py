@@ -200,7 +200,12 @@ def test_forward_matches(case, train):
 
 
 @pytest.mark.parametrize("case", ["tiny", pytest.param("tiny-fixed-27x45", marks=pytest.mark.slow)])
-@pytest.mark.parametrize("winograd", [False, True], ids=["direct", "winograd"])
+# Winograd is `slow` (its compile is the file's longest); the default suite proves it in parts:
+# the float64 Winograd kernel gradient = the direct sum to 1e-13 and the Conv layer taking it
+# (test_fast_kernels: test_winograd_kernel_gradient_in_float64_and_where_it_is_taken,
+# test_conv_matches_flax_conv[3x3_asym_winograd]), the UNet's direct gradients = the twin's (here)
+@pytest.mark.parametrize("winograd", [False, pytest.param(True, marks=pytest.mark.slow)],
+                         ids=["direct", "winograd"])
 def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
     """Train mode with float64 networks: outputs, running statistics and every parameter's
     gradient of the benchmark's Stage I loss; with `winograd`, every 3x3 kernel gradient by
