@@ -11,6 +11,7 @@ need them.
 
 from __future__ import annotations
 
+import dataclasses
 import glob
 import importlib
 import json
@@ -320,6 +321,37 @@ def test_claims_script_lists_every_claim(quick_results, tmp_path):
         assert c["effect"] == pytest.approx(mean, rel=1e-4, abs=1e-6)
 
 
+def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
+    """Without training: --depth-init pretrained's network becomes every Stage II run's
+    depth.checkpoint (Stage I runs keep theirs), a run's cache key does not depend on where the
+    cache is, and the pretraining gate is rgb_d1 >= 0.85 and >= 0.15 above blank_d1."""
+    from experiments import depth_network
+
+    ctx = runner.context(quick=True, cache=quick_cache)
+    pretrained = os.path.join(ctx.cache, "runs", "depth-0123456789ab")
+    ctx.stage2_depth_checkpoint = pretrained
+    stage2, stage1 = ctx.config("stage2", (), 0), ctx.config("stage1", (), 0)
+    assert stage2.depth.checkpoint == pretrained and stage1.depth.checkpoint is None
+    key = os.path.basename(ctx.run_dir("stage2", stage2))
+    moved = dataclasses.replace(stage2, depth=dataclasses.replace(
+        stage2.depth, checkpoint=pretrained.replace(ctx.cache, "/elsewhere/cache")))
+    monkeypatch.setattr(ctx, "cache", "/elsewhere/cache")
+    assert os.path.basename(ctx.run_dir("stage2", moved)) == key
+
+    def gate(rgb, blank):
+        d1 = {"rgb": rgb, "blank": blank}
+        monkeypatch.setattr(ctx, "use_pretraining_set", lambda frames: {
+            "height": 64, "width": 80, "scenes": "street", "seed": 2, "made_by": "render"})
+        monkeypatch.setattr(ctx, "result", lambda kind, overrides, seed: {"stage2": {"all": {
+            "d1": d1[overrides[0].split("=")[1]]}}})
+        return depth_network.pretraining_gate(ctx)
+
+    assert gate(0.90, 0.70)["passed"] and gate(0.85, 0.70)["passed"]
+    assert not gate(0.84, 0.30)["passed"] and not gate(0.90, 0.76)["passed"]
+    assert gate(0.9, 0.5)["rgb_d1"] == 0.9 and gate(0.9, 0.5)["blank_d1"] == 0.5
+
+
+@pytest.mark.slow
 def test_depth_tables_from_a_pretrained_depth_network(quick_results, quick_cache, tmp_path):
     """--depth-init pretrained: the depth network is pretrained (`irdepth train depth`) on a
     separate rendered set of visible images and every Stage II run starts from it; the results
