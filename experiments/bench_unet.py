@@ -67,6 +67,7 @@ from experiments.bench_common import (
 )
 from irdepth_jax.config import get_config
 from irdepth_jax.models.unet import MTSAUNet
+from irdepth_jax.xla_cpu import training_layers
 
 ADADELTA = {"learning_rate": 1.0, "rho": 0.9, "eps": 1e-6}
 """Stage I's AdaDelta (irdepth_jax.train.state) for both; torch.optim.Adadelta calls the rate lr."""
@@ -115,9 +116,10 @@ def make_train_step(model: MTSAUNet, tx: optax.GradientTransformation):
     """Jitted (params, batch_stats, opt_state, raw, target, labels) -> the same updated + loss."""
 
     def loss_fn(params, batch_stats, raw, target, labels):
-        out, updates = model.apply(
-            {"params": params, "batch_stats": batch_stats}, raw, train=True, mutable=["batch_stats"]
-        )
+        with training_layers():  # the layers the library's own train step uses
+            out, updates = model.apply(
+                {"params": params, "batch_stats": batch_stats}, raw, train=True, mutable=["batch_stats"]
+            )
         return stage1_loss(out, target, labels), updates["batch_stats"]
 
     @jax.jit

@@ -10,6 +10,7 @@ LAYERS = [
     ("foundation", ["config", "configs", "errors", "fileio", "video", "compile_cache", "hostmem"]),
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
+    ("CPU training kernels", ["xla_cpu"]),
     ("losses and metrics", ["losses", "metrics"]),
     ("data", ["data"]),
     ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.checkpoint",

@@ -39,8 +39,8 @@ from experiments.unet_torch import (  # noqa: E402
     load_flax_params,
 )
 from irdepth_jax.config import get_config  # noqa: E402
-from irdepth_jax.models import conv  # noqa: E402
 from irdepth_jax.models.unet import MTSAUNet  # noqa: E402
+from irdepth_jax.xla_cpu import conv, training_layers  # noqa: E402
 
 pytestmark = pytest.mark.parity
 TOL = 1e-5  # float32: max |ours - torch| <= TOL * max(1, max |torch|), per output / tensor
@@ -202,9 +202,10 @@ def test_forward_matches(case, train):
 @pytest.mark.parametrize("case", ["tiny", pytest.param("tiny-fixed-27x45", marks=pytest.mark.slow)])
 @pytest.mark.parametrize("winograd", [False, True], ids=["direct", "winograd"])
 def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
-    """Train mode with float64 networks: outputs, running statistics and every parameter's
-    gradient of the benchmark's Stage I loss; with `winograd`, every 3x3 kernel gradient by
-    Winograd (the `paper` preset's wide layers take it; `tiny`'s narrow ones would not)."""
+    """Train mode with float64 networks, under the CPU training layers (`xla_cpu`): outputs,
+    running statistics and every parameter's gradient of the benchmark's Stage I loss; with
+    `winograd`, every 3x3 kernel gradient by Winograd (the `paper` preset's wide layers take it;
+    `tiny`'s narrow ones would not)."""
     if winograd:
         monkeypatch.setattr(conv, "WINOGRAD_MIN_CHANNELS", 0)
     cfg, raw, variables, twin = _setup(case)
@@ -213,7 +214,7 @@ def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
 
     def loss_fn(params, batch_stats, raw, target, labels):
         seen, interceptor = _capture_inputs()
-        with nn.intercept_methods(interceptor):
+        with training_layers(), nn.intercept_methods(interceptor):
             out, updates = model.apply(
                 {"params": params, "batch_stats": batch_stats}, raw, train=True,
                 mutable=["batch_stats"],

@@ -21,7 +21,6 @@ import jax.numpy as jnp
 from irdepth_jax.config import UNetConfig
 from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
 from irdepth_jax.imaging.raw import normalize_raw
-from irdepth_jax.models.conv import Conv, upsample_by_matmul
 from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
@@ -40,8 +39,9 @@ behaviour."""
 def max_pool_2x2(x):
     """2x2 max-pool with stride 2: (B, h, w, C) -> (B, h/2, w/2, C); h and w must be even.
 
-    Same values and gradients (up to ties) as `nn.max_pool(x, (2, 2), strides=(2, 2))`, whose
-    backward pass (select_and_scatter) measured 6x slower on XLA:CPU (256x320x32: 87 ms vs 14 ms).
+    Same values and gradients (up to ties) as `nn.max_pool(x, (2, 2), strides=(2, 2))`, as a
+    reshape and a max, whose backward pass XLA compiles to a plain comparison (nn.max_pool's,
+    select_and_scatter, was several times slower on XLA:CPU).
     """
     b, h, w, c = x.shape
     return x.reshape(b, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
@@ -58,6 +58,21 @@ def pad_edge(x, pad_h: int, pad_w: int):
     if pad_w:
         x = jnp.concatenate([x, jnp.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
     return x
+
+
+def upsample_by_matmul(x, kernel):
+    """A transposed convolution whose stride equals its kernel: each input pixel becomes a k x k
+    block, out[b, k i + p, k j + q, o] = sum_c x[b, i, j, c] kernel[p, q, c, o].
+
+    x: (B, h, w, C_in); kernel: (k, k, C_in, C_out) -> (B, k h, k w, C_out): one matmul and a
+    depth-to-space reshape.
+    """
+    k = kernel.shape[0]
+    b, h, w, c = x.shape
+    features = kernel.shape[-1]
+    y = x.reshape(-1, c) @ kernel.transpose(2, 0, 1, 3).reshape(c, k * k * features)
+    y = y.reshape(b, h, w, k, k, features).transpose(0, 1, 3, 2, 4, 5)
+    return y.reshape(b, k * h, k * w, features)
 
 
 class Upsample2x(nn.Module):
@@ -88,7 +103,7 @@ class DoubleConv(nn.Module):
     @nn.compact
     def __call__(self, x, train: bool):
         for i in range(2):
-            x = Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
+            x = nn.Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
             x = nn.BatchNorm(
                 use_running_average=not train,
                 momentum=self.bn_momentum,
@@ -217,7 +232,7 @@ class MTSAUNet(nn.Module):
             features[task] = d[:, :height, :width]
 
         def head(task: str, channels: int):
-            return Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
+            return nn.Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
 
         return {
             "recon": nn.sigmoid(head("recon", 1)),
