@@ -1,6 +1,6 @@
 """The `paper` preset: the paper's model sizes and training schedule (meant for a GPU)."""
 
-from irdepth_jax.config import Config
+from irdepth_jax.config_schema import Config
 
 
 def get_config() -> Config:

@@ -1,6 +1,6 @@
 """The `small` preset: the committed synthetic-benchmark results (experiments/results/)."""
 
-from irdepth_jax.config import (
+from irdepth_jax.config_schema import (
     Config,
     DataConfig,
     DepthConfig,

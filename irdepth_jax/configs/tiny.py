@@ -1,6 +1,6 @@
 """The `tiny` preset: seconds-sized models for the quickstart and the tests."""
 
-from irdepth_jax.config import (
+from irdepth_jax.config_schema import (
     Config,
     DataConfig,
     DepthConfig,

@@ -1,6 +1,7 @@
-"""The whole model as pure functions: raw 14-bit -> MTSA-UNet -> HSV -> RGB -> depth.
+"""The whole model as pure functions: raw counts -> MTSA-UNet -> HSV -> RGB -> depth.
 
-    raw (B, H, W) uint16
+    raw (B, H, W) uint16 counts of cfg.data.raw_bits (14 or 16) bits
+      -> unet_input                  the one normalisation of raw counts, (B, H, W) in [0, 1]
       -> MTSAUNet (eval mode)       recon, saturation (B, H, W, 1); seg_logits (B, H, W, C)
       -> unet_to_hsv                 H = class hue of seg, S = saturation, V = recon
       -> hsv_to_rgb                  pseudo-RGB (B, H, W, 3) in [0, 1]

@@ -1,6 +1,6 @@
 """MTSA-UNet (paper section 3.2): a shared UNet encoder and three task decoders.
 
-    raw (B, H, W[, 1]) -> normalise -> edge-pad to a multiple of 2^stages
+    image (B, H, W[, 1]) in [0, 1] -> edge-pad to a multiple of 2^stages
       encoder: per stage 2 x (3x3 conv, BN, ReLU) -> skip, then 2x2 max-pool; widths cfg.widths
       bottleneck: 2 x (3x3 conv, BN, ReLU) to cfg.bottleneck channels
       3 decoders (recon, seg, gradient), each with one up block per stage, deepest first:
@@ -20,7 +20,6 @@ import jax.numpy as jnp
 
 from irdepth_jax.config import UNetConfig
 from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
-from irdepth_jax.imaging.raw import normalize_raw
 from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
@@ -147,7 +146,7 @@ class MTSAUNet(nn.Module):
 
     Attributes:
       cfg: `irdepth_jax.config.UNetConfig` (widths, bottleneck, num_classes, use_rgg, rgg_alpha,
-        bn_momentum, raw_scale).
+        bn_momentum; its raw_scale is the pipeline's, `models.pipeline.unet_input`).
       axis_name: mapped axis over which every BatchNorm averages its batch statistics (under
         pmap / shard_map); None for a single device.
 
@@ -160,13 +159,13 @@ class MTSAUNet(nn.Module):
     axis_name: str | None = None
 
     @nn.compact
-    def __call__(self, raw, train: bool = False):
+    def __call__(self, image, train: bool = False):
         """Runs the three branches.
 
         Args:
-          raw: (B, H, W) or (B, H, W, 1). Integer dtype (uint16 raw 14-bit counts): normalised
-            here with `normalize_raw(raw, cfg.raw_scale)`. Float dtype: taken as an already
-            normalised image in [0, 1] and used as is.
+          image: (B, H, W) or (B, H, W, 1) float, the normalised thermal image in [0, 1]: raw
+            counts are normalised by `models.pipeline.unet_input` (which knows their bit depth
+            and the config's scaling); integer input is refused.
           train: BatchNorm uses batch statistics and updates `batch_stats` (apply with
             mutable=['batch_stats']); otherwise it uses the running averages.
 
@@ -179,20 +178,18 @@ class MTSAUNet(nn.Module):
             input_gradient (B, H, W, 1), GCM of the normalised input.
         """
         cfg = self.cfg
-        if raw.ndim == 3:
-            raw = raw[..., None]
-        if raw.ndim != 4 or raw.shape[-1] != 1:
+        if image.ndim == 3:
+            image = image[..., None]
+        if image.ndim != 4 or image.shape[-1] != 1:
             raise ValueError(
-                f"MTSAUNet: expected raw (B, H, W) or (B, H, W, 1), got shape {raw.shape}"
+                f"MTSAUNet: expected an image (B, H, W) or (B, H, W, 1), got shape {image.shape}"
             )
-        if jnp.issubdtype(raw.dtype, jnp.integer):
-            x = normalize_raw(raw, cfg.raw_scale)
-        elif jnp.issubdtype(raw.dtype, jnp.floating):
-            x = raw.astype(jnp.float32)
-        else:
+        if not jnp.issubdtype(image.dtype, jnp.floating):
             raise ValueError(
-                f"MTSAUNet: expected integer raw counts or a float image, got {raw.dtype}"
+                f"MTSAUNet: expected a float image in [0, 1], got {image.dtype}; normalise raw "
+                "counts with models.pipeline.unet_input (their bit depth is data.raw_bits)"
             )
+        x = image.astype(jnp.float32)
         height, width = x.shape[1:3]
         multiple = 2 ** len(cfg.widths)
         pad_h, pad_w = -height % multiple, -width % multiple
@@ -210,8 +207,8 @@ class MTSAUNet(nn.Module):
         )
 
         if cfg.use_rgg:
-            # Guidance from the input's GCM, divided by its per-image mean: a 14-bit scene spans a
-            # few hundred counts, so the raw GCM is ~1e-3 and would barely move the attention.
+            # Guidance from the input's GCM, divided by its per-image mean: a scene spans a few
+            # hundred counts of 2^14 or 2^16, so the GCM is ~1e-3 and would barely move the attention.
             g = gcm / (jnp.mean(gcm, axis=(1, 2, 3), keepdims=True) + 1e-8)
             guides = [resize_gradient(g, s.shape[1:3]) for s in skips]
         else:

@@ -30,7 +30,7 @@ def init_key(seed: int) -> jax.Array:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _init_unet(unet_cfg, key):
-    return MTSAUNet(unet_cfg).init(key, jnp.zeros((1, 32, 32), jnp.uint16), train=False)
+    return MTSAUNet(unet_cfg).init(key, jnp.zeros((1, 32, 32), jnp.float32), train=False)
 
 
 def init_unet(cfg: Config) -> dict:
