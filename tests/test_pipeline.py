@@ -15,8 +15,8 @@ from irdepth_jax.imaging.color import CLASS_HUES
 from irdepth_jax.imaging.tonemap import clahe
 from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD, DepthAnythingV2, network_input
 from irdepth_jax.models.pipeline import depth_model_config, raw_to_depth, run_pipeline, unet_outputs, unet_to_hsv
+from irdepth_jax.runs.variables import init_unet, random_depth
 from irdepth_jax.train.steps import stage2_loss_fn
-from irdepth_jax.train.variables import init_unet, random_depth
 
 CFG = get_config("tiny")
 
