@@ -83,7 +83,7 @@ def intercept(next_fun, args, kwargs, context, *, native: bool):
         return m.clone(parent=m.scope, conv_general_dilated=fast)(*args, **kwargs)
     if kind is nn.Dense and m.dot_general is None and m.dot_general_cls is None:
         return m.clone(parent=m.scope, dot_general=functools.partial(conv.dot_general, native=native))(*args, **kwargs)
-    if kind is nn.ConvTranspose and _is_upsampling(m, args[0]) and not kwargs:
+    if kind is nn.ConvTranspose and len(args) == 1 and not kwargs and _is_upsampling(m, args[0]):
         return UpsampleByMatmul(m, parent=m.scope)(*args)
     if isinstance(m, RGG):
         return next_fun(conv.materialize(args[0]), *args[1:], **kwargs)
