@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from irdepth_jax.hostmem import keep_freed_memory
-from irdepth_jax.models import native_conv
+from irdepth_jax.xla_cpu import native_conv
 
 
 def compiled_with_seconds(jitted, *args):

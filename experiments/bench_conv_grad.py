@@ -1,4 +1,4 @@
-"""Kernel gradient of a 3x3 stride-1 NHWC convolution: XLA:CPU's own vs `models.conv`'s, and
+"""Kernel gradient of a 3x3 stride-1 NHWC convolution: XLA:CPU's own vs `xla_cpu.conv`'s, and
 PyTorch's (`torch.nn.grad.conv2d_weight`) when torch is installed, on this machine (jitted; the
 sides interleaved in one process, medians of 7 calls after one warm-up).
 
@@ -6,7 +6,8 @@ sides interleaved in one process, medians of 7 calls after one warm-up).
 
 Prints one line per layer shape (batch, height, width, C_in, C_out) of the UNet / DPT head:
 XLA's ms, ours ms and which of `conv.kernel_gradient`'s five ways ours took, ours without the
-native kernel (`conv.USE_NATIVE` off: the XLA ways), PyTorch's ms and the ratio. Measured 2026-12-03
+native kernel (the XLA ways; ours takes it where it builds), PyTorch's ms and the ratio.
+Measured 2026-12-03
 on a 2-core Intel Xeon (AVX-512), commit eebdcf8: (4, 256, 320, 64, 32) 355 vs 192 ms (row
 blocks); (1, 256, 320, 32, 32) 52 vs 30 ms; (2, 518, 518, 32, 32) 353 vs 168 ms;
 (4, 128, 160, 128, 64) 306 vs 107 ms; (1, 64, 80, 256, 128) 45 vs 23 ms (by tap);
@@ -29,7 +30,7 @@ from jax import lax
 
 from experiments.bench_common import interleaved_medians, usable_cpus, wall_seconds
 from irdepth_jax.hostmem import keep_freed_memory
-from irdepth_jax.models import conv
+from irdepth_jax.xla_cpu import conv, native_conv
 
 SHAPES = [(4, 256, 320, 64, 32), (1, 256, 320, 32, 32), (2, 518, 518, 32, 32),
           (4, 128, 160, 128, 64), (1, 64, 80, 256, 128), (1, 16, 20, 512, 512), (1, 256, 320, 1, 32)]
@@ -59,8 +60,9 @@ def torch_kernel_gradient_call(x, kernel, g):
 
 def main() -> None:
     keep_freed_memory()
-    ours, xla = kernel_gradient_fn(conv.conv_general_dilated), kernel_gradient_fn(lax.conv_general_dilated)
-    xla_ways = kernel_gradient_fn(conv.conv_general_dilated)  # traced with conv.USE_NATIVE off
+    native = native_conv.available()
+    ours = kernel_gradient_fn(functools.partial(conv.conv_general_dilated, native=native))
+    xla, xla_ways = kernel_gradient_fn(lax.conv_general_dilated), kernel_gradient_fn(conv.conv_general_dilated)
     with_torch = importlib.util.find_spec("torch") is not None
     if with_torch:
         import torch
@@ -70,17 +72,12 @@ def main() -> None:
     for b, h, w, ci, co in SHAPES:
         args = (rng.random((b, h, w, ci), np.float32), rng.random((3, 3, ci, co), np.float32),
                 rng.random((b, h, w, co), np.float32))
-        use_native, conv.USE_NATIVE = conv.USE_NATIVE, False
-        try:
-            xla_ways_call = xla_ways.lower(*args).compile()
-        finally:
-            conv.USE_NATIVE = use_native
-        calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours, xla_ways_call)]
+        calls = [lambda fn=fn: fn(*args).block_until_ready() for fn in (xla, ours, xla_ways)]
         if with_torch:
             calls.append(torch_kernel_gradient_call(*args))
         seconds = interleaved_medians([functools.partial(wall_seconds, c) for c in calls],
                                       repeats=7, warmup=1)
-        method = conv.kernel_gradient_method((b, h, w, ci), (b, h, w, co), (3, 3))
+        method = conv.kernel_gradient_method((b, h, w, ci), (b, h, w, co), (3, 3), native=native)
         line = (f"{(b, h, w, ci, co)}: XLA {1e3 * seconds[0]:.1f} ms, ours ({method}) {1e3 * seconds[1]:.1f} ms,"
                 f" ours without the native kernel {1e3 * seconds[2]:.1f} ms")
         if with_torch:

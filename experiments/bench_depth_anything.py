@@ -61,6 +61,7 @@ from experiments.bench_unet import parse_size
 from irdepth_jax.losses import silog_loss
 from irdepth_jax.models.depth_anything import DepthAnythingV2, depth_anything_config
 from irdepth_jax.weights import load_depth_anything
+from irdepth_jax.xla_cpu import training_layers
 
 OFFICIAL_REPO = os.environ.get("IRDEPTH_OFFICIAL_DA", os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "third_party", "Depth-Anything-V2"))
@@ -101,7 +102,8 @@ def make_train_step(model: DepthAnythingV2, tx):
     """Jitted (params, opt_state, images, depth, valid) -> (params, opt_state, loss)."""
 
     def loss_fn(params, images, depth, valid):
-        return silog_loss(model.apply({"params": params}, images), depth, valid)
+        with training_layers():  # the layers the library's own train step uses
+            return silog_loss(model.apply({"params": params}, images), depth, valid)
 
     @jax.jit
     def step(params, opt_state, images, depth, valid):

@@ -30,10 +30,10 @@ from experiments.bench_unet import parse_size
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import BatchStream, DataSource, device_batch, make_loader, phase_frames
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
+from irdepth_jax.runs.variables import init_unet
 from irdepth_jax.train.parallel import DataParallel
 from irdepth_jax.train.state import TrainState, stage1_optimizer
 from irdepth_jax.train.steps import make_train_step, stage1_loss_fn
-from irdepth_jax.train.variables import init_unet
 
 PHASE = "stage1_i1"
 

@@ -60,7 +60,8 @@ def make_model(preset: str, dtype: str, workdir: str | None = None, overrides=()
     Depth Anything compute dtype `dtype`; saved as a run at `workdir` when given (what
     `irdepth predict` reads). Deterministic: every process builds the same weights."""
     from irdepth_jax.config import apply_overrides, get_config
-    from irdepth_jax.train.variables import init_unet, random_depth, save_model
+    from irdepth_jax.runs.variables import init_unet, random_depth
+    from irdepth_jax.train.state import save_model
 
     cfg = apply_overrides(get_config(preset), list(overrides))
     cfg = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, dtype=dtype))

@@ -24,7 +24,8 @@ Forward: eval mode (running BatchNorm statistics); torch under inference_mode. T
 full Stage I update in both: forward in train mode (batch statistics), L1 reconstruction +
 cross-entropy + L1 saturation-vs-input-gradient loss, backward, AdaDelta update (optax.adadelta
 and torch.optim.Adadelta with `ADADELTA`). Both run the same weights (ours, random, copied into
-the twin) on the same random uint16 raw frames (timings do not depend on the content). Times are
+the twin) on the same random images, 14-bit counts normalised as the pipeline's `unet_input`
+does (timings do not depend on the content). Times are
 wall-clock medians over --repeats calls after --warmup untimed ones, ours and the twin's calls
 interleaved (A, B, A, B, ...) so that a drift in the machine's load hits both alike.
 
@@ -67,6 +68,7 @@ from experiments.bench_common import (
 )
 from irdepth_jax.config import get_config
 from irdepth_jax.models.unet import MTSAUNet
+from irdepth_jax.xla_cpu import training_layers
 
 ADADELTA = {"learning_rate": 1.0, "rho": 0.9, "eps": 1e-6}
 """Stage I's AdaDelta (irdepth_jax.train.state) for both; torch.optim.Adadelta calls the rate lr."""
@@ -115,9 +117,10 @@ def make_train_step(model: MTSAUNet, tx: optax.GradientTransformation):
     """Jitted (params, batch_stats, opt_state, raw, target, labels) -> the same updated + loss."""
 
     def loss_fn(params, batch_stats, raw, target, labels):
-        out, updates = model.apply(
-            {"params": params, "batch_stats": batch_stats}, raw, train=True, mutable=["batch_stats"]
-        )
+        with training_layers():  # the layers the library's own train step uses
+            out, updates = model.apply(
+                {"params": params, "batch_stats": batch_stats}, raw, train=True, mutable=["batch_stats"]
+            )
         return stage1_loss(out, target, labels), updates["batch_stats"]
 
     @jax.jit
@@ -150,11 +153,12 @@ def unet_config(preset: str, use_rgg: bool):
 
 
 def bench_inputs(num_classes: int, size, batch: int):
-    """The same random raw frames, targets and labels for both sides: (B, H, W) uint16,
-    (B, H, W, 1) float32, (B, H, W) int32 (timings do not depend on the content)."""
+    """The same random images, targets and labels for both sides: (B, H, W) float32 (14-bit
+    counts / (2^14 - 1), the UNet's input, which the twins use as is), (B, H, W, 1) float32,
+    (B, H, W) int32 (timings do not depend on the content)."""
     rng = np.random.default_rng(0)
     h, w = size
-    return (rng.integers(2000, 9000, (batch, h, w)).astype(np.uint16),
+    return ((rng.integers(2000, 9000, (batch, h, w)) / (2**14 - 1)).astype(np.float32),
             rng.random((batch, h, w, 1), dtype=np.float32),
             rng.integers(0, num_classes, (batch, h, w)).astype(np.int32))
 

@@ -357,8 +357,8 @@ class Context:
         """Stage I metrics: reconstruction on the depth test frames, mIoU (tables 3 and 6) on
         the segmentation test frames (the paper's independent 600/100/100 split)."""
         from irdepth_jax.evaluators import evaluate_stage1
+        from irdepth_jax.runs.variables import load_stage1
         from irdepth_jax.train.parallel import DataParallel
-        from irdepth_jax.train.variables import load_stage1
 
         unet, _ = load_stage1(workdir, cfg)
         dataset, indices = self._eval_frames()
@@ -373,9 +373,9 @@ class Context:
         (`metrics.SKY_METRICS`, on the labelled frames, against the run's sky reference depth)."""
         from irdepth_jax.evaluators import accumulate_depth
         from irdepth_jax.metrics import DepthMetricAccumulator, SkyMetricAccumulator
+        from irdepth_jax.runs.variables import load_model
         from irdepth_jax.train.parallel import DataParallel
         from irdepth_jax.train.stages import sky_reference_depth
-        from irdepth_jax.train.variables import load_model
 
         _, _, model = load_model(workdir, [])
         dataset, indices = self._eval_frames()

@@ -36,7 +36,7 @@ def main(argv=None) -> None:
 
     from irdepth_jax.models.pipeline import run_pipeline
     from irdepth_jax.predict import colorize_depth
-    from irdepth_jax.train.variables import load_model
+    from irdepth_jax.runs.variables import load_model
 
     ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,
                          data=args.data, cache=args.cache)

@@ -380,7 +380,7 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_USAGE
     from irdepth_jax.data.folder import DatasetError
     from irdepth_jax.errors import Interrupted, RunError
-    from irdepth_jax.train.checkpoint import CheckpointError
+    from irdepth_jax.runs.checkpoint import CheckpointError
 
     try:
         _setup_jax(args)

@@ -263,7 +263,7 @@ def _stage1_settings(cfg, stage1_checkpoint: str, overrides: list[str]):
     """`cfg` with the Stage I model's settings from --stage1-checkpoint (a conflicting
     ``key=value`` refused), and a note naming those that differ from the preset's."""
     from irdepth_jax.config import override_keys
-    from irdepth_jax.train.variables import take_stage1_settings
+    from irdepth_jax.runs.variables import take_stage1_settings
 
     cfg, taken = take_stage1_settings(stage1_checkpoint, cfg, override_keys(overrides))
     if taken:

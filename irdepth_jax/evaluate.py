@@ -1,6 +1,6 @@
 """`irdepth eval`: a trained run evaluated on a dataset split, written as Markdown + JSON tables.
 
-`evaluate_run` loads the run (`train.variables.load_model`), runs the evaluators
+`evaluate_run` loads the run (`runs.variables.load_model`), runs the evaluators
 (`evaluators.evaluate_stage1` / `evaluate_stage2`) on the split with the MS2 protocol options
 (stride, alignment, clamping) and writes ``eval_<split>.md`` / ``.json``; `format_tables`
 renders a result, `nonfinite_warning` says when predictions were NaN / inf.
@@ -20,8 +20,8 @@ from irdepth_jax.errors import RunError, counted
 from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import make_dirs, write_bytes
 from irdepth_jax.metrics import DEPTH_METRICS
+from irdepth_jax.runs.variables import describe_trained_on, input_warnings, load_model
 from irdepth_jax.train.parallel import DataParallel
-from irdepth_jax.train.variables import describe_trained_on, input_warnings, load_model
 
 
 def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",

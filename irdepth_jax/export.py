@@ -238,7 +238,7 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
       ExportError (one line) for a bad argument or model, a converter failure, or a check
       over `TOLERANCE` x max depth (nothing is written then); RunError from `load_model`.
     """
-    from irdepth_jax.train.variables import load_model
+    from irdepth_jax.runs.variables import load_model
 
     if fmt not in FORMATS:
         raise ExportError(f"--format {fmt}: choose one of {', '.join(FORMATS)}")

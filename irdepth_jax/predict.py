@@ -360,7 +360,7 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
     """
     from irdepth_jax.config import resolved_raw_bits
     from irdepth_jax.imaging.raw import BIT_DEPTHS
-    from irdepth_jax.train.variables import load_model
+    from irdepth_jax.runs.variables import load_model
     from irdepth_jax.train.workdir_lock import acquire, release
 
     batch_size = default_batch_size() if batch_size is None else batch_size
@@ -459,9 +459,9 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
 
 def _say_what_it_was_trained_on(path: str, trained_on: dict | None, shapes: set) -> None:
     """Prints (stderr) what the model was trained on, and a warning for each way the inputs
-    differ from it in kind (`train.variables.input_warnings`); nothing for a checkpoint that
+    differ from it in kind (`runs.variables.input_warnings`); nothing for a checkpoint that
     did not record it."""
-    from irdepth_jax.train.variables import describe_trained_on, input_warnings
+    from irdepth_jax.runs.variables import describe_trained_on, input_warnings
 
     if trained_on is None:
         return

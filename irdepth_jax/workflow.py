@@ -21,9 +21,9 @@ from irdepth_jax.config import Config
 from irdepth_jax.data.source import DataSource, resolve_raw_bits
 from irdepth_jax.evaluate import evaluate_run
 from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
+from irdepth_jax.runs.variables import init_depth, init_unet
 from irdepth_jax.train.phase import RunOptions, make_parallel
 from irdepth_jax.train.stages import train_stage1, train_stage2
-from irdepth_jax.train.variables import init_depth, init_unet
 
 
 def synthetic_data(cfg: Config, path: str, progress: bool = True) -> str:

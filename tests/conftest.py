@@ -89,7 +89,7 @@ def untrained_model(tmp_path_factory):
     from trained_runs import untrained_stage2
 
     from irdepth_jax.config import get_config
-    from irdepth_jax.train.variables import load_model
+    from irdepth_jax.runs.variables import load_model
 
     work = _made_once(tmp_path_factory, "shared_untrained",
                       lambda w: untrained_stage2(w, get_config("tiny")))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from irdepth_jax.config import get_config
-from irdepth_jax.train.checkpoint import Checkpointer, CheckpointError, restore_model
+from irdepth_jax.runs.checkpoint import Checkpointer, CheckpointError, restore_model
 from irdepth_jax.train.state import TrainState, stage2_optimizer
 
 

@@ -17,11 +17,11 @@ from irdepth_jax import cli, evaluators
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import DataSource
 from irdepth_jax.models.depth_anything import depth_anything_config
+from irdepth_jax.runs.checkpoint import Checkpointer, restore_model
+from irdepth_jax.runs.variables import init_unet
 from irdepth_jax.train import phase, runlog
-from irdepth_jax.train.checkpoint import Checkpointer, restore_model
 from irdepth_jax.train.runlog import WALL_CLOCK_FIELDS
 from irdepth_jax.train.state import TrainState
-from irdepth_jax.train.variables import init_unet
 from irdepth_jax.weights import to_official_state_dict
 
 QUICK = trained_runs.QUICK  # also imported by test_cli_guards and test_cli_failures

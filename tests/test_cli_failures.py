@@ -25,10 +25,11 @@ from irdepth_jax import cli
 from irdepth_jax.config import get_config
 from irdepth_jax.fileio import mount_point
 from irdepth_jax.models import pipeline
-from irdepth_jax.train import runlog, variables
-from irdepth_jax.train.checkpoint import Checkpointer, restore_model
+from irdepth_jax.runs import variables
+from irdepth_jax.runs.checkpoint import Checkpointer, restore_model
+from irdepth_jax.runs.variables import init_unet
+from irdepth_jax.train import runlog
 from irdepth_jax.train.state import TrainState
-from irdepth_jax.train.variables import init_unet
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
 TINY = get_config("tiny")

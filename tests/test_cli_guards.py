@@ -16,7 +16,8 @@ import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
-from irdepth_jax.train import checkpoint, phase, stages
+from irdepth_jax.runs import checkpoint
+from irdepth_jax.train import phase, stages
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
 

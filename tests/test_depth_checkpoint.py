@@ -9,7 +9,7 @@ from da_params import random_params
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.errors import RunError
 from irdepth_jax.models.depth_anything import depth_anything_config
-from irdepth_jax.train.variables import init_depth, random_depth
+from irdepth_jax.runs.variables import init_depth, random_depth
 from irdepth_jax.weights import to_official_state_dict
 
 torch = pytest.importorskip("torch")

@@ -13,7 +13,7 @@ from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.folder import FolderDataset
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.errors import RunError
-from irdepth_jax.train.variables import init_depth, load_model
+from irdepth_jax.runs.variables import init_depth, load_model
 
 
 @pytest.fixture(scope="module")

@@ -218,8 +218,8 @@ def test_runs_are_shared_between_tables(quick_results):
 def test_single_task_models_share_the_i1_weights(quick_results, quick_cache):
     """Table 2/3 protocol: multi-task and single-task Stage I runs start from one I-1 run."""
     from irdepth_jax.config import get_config
-    from irdepth_jax.train.checkpoint import restore_model
-    from irdepth_jax.train.variables import init_unet
+    from irdepth_jax.runs.checkpoint import restore_model
+    from irdepth_jax.runs.variables import init_unet
 
     record = quick_results["table3_multitask_segmentation"][0]
     runs = [_row(record, s)["per_seed"]["0"]["run"] for s in ("multi-task", "single-task")]

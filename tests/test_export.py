@@ -12,7 +12,7 @@ from irdepth_jax import cli, export
 from irdepth_jax.data.rawio import read_frames
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.models.pipeline import raw_to_depth
-from irdepth_jax.train import variables as model_io
+from irdepth_jax.runs import variables as model_io
 
 SHAPE = (2, 40, 72)  # export shape: not a multiple of 16, so the UNet's edge padding is in it
 REAL_FRAME = "ms2_sample/left/000011_thr.png"  # 256x640, counts 3211-5756

@@ -1,18 +1,17 @@
-"""The CPU performance kernels against independent references, under jit, on tiny shapes.
+"""The CPU training layers against independent references, under jit, on tiny shapes.
 
-`irdepth_jax.models.conv`: `Conv` against `flax.linen.Conv` (parameters, forward, gradients; each
-of the kernel gradient's four XLA ways (the fifth, the native kernel: test_native_conv.py), the
-1x1 einsum, the stride-2 fallback), `kernel_gradient`'s
-im2col, per-tap, row-block (both layouts) and Winograd ways and `input_gradient` against autodiff of
-`lax.conv_general_dilated`,
-`upsample_by_matmul` against its formula in numpy loops, `ConvTranspose` against
-`flax.linen.ConvTranspose`, `Dense` against `flax.linen.Dense`.
+`irdepth_jax.xla_cpu`: `flax.linen.Conv` under the CPU layer interceptor (`layers.intercept`)
+against plain `flax.linen.Conv` (parameters, forward, gradients; each of the kernel gradient's
+four XLA ways (the fifth, the native kernel: test_native_conv.py), the 1x1 einsum, the stride-2
+fallback), `kernel_gradient`'s im2col, per-tap, row-block (both layouts) and Winograd ways and
+`input_gradient` against autodiff of `lax.conv_general_dilated`, `upsample_by_matmul` against its
+formula in numpy loops, `ConvTranspose` and `Dense` under the interceptor against plain Flax,
+`training_layers`' choice (CPU only, native only when asked for).
 
 `irdepth_jax.models.dinov2`: `softmax_attention` (custom VJP) against the plain softmax formula and
 its autodiff (float32, and float64 on inputs where the float32 softmax is exact), `exact_gelu`
 against `jax.nn.gelu` and the hand formula, `gradient_fence` / `after` / `materialize`, and the
-tiny Depth Anything V2's parameter gradients against the same model built from plain autodiff
-functions.
+tiny Depth Anything V2's parameter gradients with and without the interceptor.
 """
 
 import functools
@@ -26,9 +25,13 @@ import pytest
 from da_params import random_params
 from jax import lax
 
-from irdepth_jax.models import conv, dinov2
+from irdepth_jax import xla_cpu
+from irdepth_jax.errors import RunError
+from irdepth_jax.models import dinov2
 from irdepth_jax.models.depth_anything import depth_anything_config
 from irdepth_jax.models.dinov2 import DinoVisionTransformer
+from irdepth_jax.models.unet import upsample_by_matmul
+from irdepth_jax.xla_cpu import conv, layers
 
 NHWC = ("NHWC", "HWIO", "NHWC")
 
@@ -56,6 +59,23 @@ def assert_bitwise(got, want, what=""):
 
 def random(shape, seed, scale=1.0, dtype=jnp.float32):
     return jnp.asarray(np.random.default_rng(seed).normal(0.0, scale, shape), dtype)
+
+
+def under_cpu_layers(fn):
+    """`fn` called with the CPU layer replacements installed (XLA ways only)."""
+
+    def wrapped(*args, **kwargs):
+        with nn.intercept_methods(functools.partial(layers.intercept, native=False)):
+            return fn(*args, **kwargs)
+
+    return wrapped
+
+
+class Fast:
+    """A Flax module's init / apply under `under_cpu_layers`."""
+
+    def __init__(self, module):
+        self.init, self.apply = under_cpu_layers(module.init), under_cpu_layers(module.apply)
 
 
 # ------------------------------------------------------------------------------------------- Conv
@@ -97,7 +117,7 @@ def test_conv_matches_flax_conv(case, monkeypatch):
         monkeypatch.setattr(conv, "IM2COL_BYTES", 0)
     if case.endswith("_winograd"):
         monkeypatch.setattr(conv, "WINOGRAD_MIN_CHANNELS", 0)
-    ours, flax_conv = conv.Conv(**kwargs), nn.Conv(**kwargs)
+    ours, flax_conv = Fast(nn.Conv(**kwargs)), nn.Conv(**kwargs)
     x = random(shape, 1)
     key = jax.random.key(3)
     params = ours.init(key, x)
@@ -232,7 +252,7 @@ def test_input_gradient_matches_autodiff(kernel_size, pads):
 def test_upsample_by_matmul_formula(k):
     x = random((2, 3, 2, 3), 1)
     kernel = random((k, k, 3, 5), 2)
-    got = np.asarray(jax.jit(conv.upsample_by_matmul)(x, kernel))
+    got = np.asarray(jax.jit(upsample_by_matmul)(x, kernel))
     xn, kn = np.asarray(x, np.float64), np.asarray(kernel, np.float64)
     b, h, w, c_in = xn.shape
     want = np.zeros((b, k * h, k * w, kn.shape[-1]))
@@ -251,8 +271,8 @@ def test_upsample_by_matmul_formula(k):
 @pytest.mark.parametrize("k", [2, 4])
 def test_conv_transpose_matches_flax(k):
     x = random((2, 3, 5, 3), 1)
-    ours = conv.ConvTranspose(6, k)
     flax_ct = nn.ConvTranspose(6, (k, k), strides=(k, k), padding="VALID")
+    ours = Fast(flax_ct)
     key = jax.random.key(7)
     params = ours.init(key, x)
     assert_bitwise(params, flax_ct.init(key, x), "init")
@@ -261,6 +281,7 @@ def test_conv_transpose_matches_flax(k):
     y_ref = jax.jit(flax_ct.apply)(params, x)
     assert y.shape == y_ref.shape == (2, 3 * k, 5 * k, 6)
     assert_close(y, y_ref, 1e-6, "forward")
+    assert "conv_general_dilated" not in str(jax.make_jaxpr(ours.apply)(params, x))  # the matmul
     w = random(y.shape, 5)
     grads = jax.jit(jax.grad(lambda p, x: jnp.sum(w * ours.apply(p, x)), (0, 1)))(params, x)
     grads_ref = jax.jit(jax.grad(lambda p, x: jnp.sum(w * flax_ct.apply(p, x)), (0, 1)))(params, x)
@@ -271,7 +292,7 @@ def test_conv_transpose_matches_flax(k):
 def test_dense_matches_flax_dense(shape):
     """Same parameters; forward and gradients through the 1x1 matmul's custom VJP (on CPU)."""
     x = random(shape, 1)
-    ours, flax_dense = conv.Dense(6), nn.Dense(6)
+    ours, flax_dense = Fast(nn.Dense(6)), nn.Dense(6)
     params = ours.init(jax.random.key(3), x)
     assert_bitwise(params, flax_dense.init(jax.random.key(3), x), "init")
     params = {"params": {**params["params"], "bias": random((6,), 4)}}
@@ -383,8 +404,8 @@ def test_exact_gelu_forward_and_gradient():
 
 def test_gradient_fence_and_after():
     x, w = random((2, 5, 4), 1), random((2, 5, 4), 2)
-    assert_bitwise(jax.jit(dinov2.gradient_fence)(x), x, "fence forward")
-    grad = jax.jit(jax.grad(lambda x: jnp.sum(w * dinov2.gradient_fence(x))))(x)
+    assert_bitwise(jax.jit(layers.gradient_fence)(x), x, "fence forward")
+    grad = jax.jit(jax.grad(lambda x: jnp.sum(w * layers.gradient_fence(x))))(x)
     assert_bitwise(grad, w, "fence gradient")
     assert_bitwise(jax.jit(conv.materialize)(w), w, "materialize")
     assert np.isnan(np.asarray(jax.jit(conv.materialize)(w.at[0, 0, 0].set(jnp.nan)))).all()
@@ -399,8 +420,9 @@ def test_gradient_fence_and_after():
 
 # ------------------------------------------------------------------------ whole backbone, tiny
 def test_vit_gradients_match_plain_autodiff(monkeypatch):
-    """The tiny preset's DINOv2 backbone (4 blocks, every block tapped), where all four custom
-    VJPs sit (the DPT head has none; the full model would double the compile time)."""
+    """The tiny preset's DINOv2 backbone (4 blocks, every block tapped), where all custom VJPs
+    sit (the DPT head has none; the full model would double the compile time): under the CPU
+    layers (dense layers, block fences) against plain Flax with plain attention and GELU."""
     cfg = depth_anything_config("tiny")
     params = random_params(cfg)["pretrained"]
     vit = DinoVisionTransformer(cfg.embed_dim, cfg.depth, cfg.num_heads, cfg.taps, cfg.mlp_ratio, cfg.ffn,
@@ -408,22 +430,47 @@ def test_vit_gradients_match_plain_autodiff(monkeypatch):
     images = random((1, 28, 42, 3), 1)
     weights = [random((1, 6, cfg.embed_dim), 2 + i) for i in range(len(cfg.taps))]
 
-    def gradients():
+    def gradients(apply):
         # a fresh function each time: jit traces it again, with whatever dinov2's names hold now
         def loss(params):
-            taps = vit.apply({"params": params}, images)
+            taps = apply({"params": params}, images)
             return sum(jnp.sum(w * t) for w, t in zip(weights, taps))
 
         compiled = jax.jit(jax.grad(loss)).lower(params).compile()
         return str(jax.make_jaxpr(loss)(params)), compiled(params)
 
-    jaxpr, grads = gradients()
-    # per block: attention, GELU, the fence before it and the one inside it, 4 dense layers
-    assert jaxpr.count("custom_vjp_call") == 8 * cfg.depth
+    jaxpr, grads = gradients(under_cpu_layers(vit.apply))
+    # per block: attention, GELU, the fence before it, 4 dense layers
+    assert jaxpr.count("custom_vjp_call") == 7 * cfg.depth
     monkeypatch.setattr(dinov2, "softmax_attention", plain_attention)
     monkeypatch.setattr(dinov2, "exact_gelu", lambda x: jax.nn.gelu(x, approximate=False))
-    monkeypatch.setattr(dinov2, "gradient_fence", lambda x: x)
-    monkeypatch.setattr(dinov2, "Dense", nn.Dense)
-    jaxpr_ref, grads_ref = gradients()
+    jaxpr_ref, grads_ref = gradients(vit.apply)
     assert "custom_vjp_call" not in jaxpr_ref
     assert_close(grads, grads_ref, 1e-5, "parameter gradients")
+
+
+# --------------------------------------------------------------------------- the one choice
+def test_training_layers_are_chosen_by_backend_and_an_opt_in(monkeypatch):
+    """On CPU the interceptor, without the native kernel unless asked for; never built by
+    default; a bad value or an unavailable kernel refused, naming the variable."""
+    built = []
+    monkeypatch.setattr(xla_cpu.native_conv, "available", lambda: built.append(1) or False)
+    monkeypatch.setattr(xla_cpu.native_conv, "unavailable_reason", lambda: "no C++ compiler found")
+    x = random((1, 8, 8, 1), 1)
+    model = nn.Conv(2, (3, 3))
+    params = model.init(jax.random.key(0), x)
+    monkeypatch.delenv(xla_cpu.NATIVE_ENV, raising=False)
+
+    def jaxpr():
+        with xla_cpu.training_layers():
+            return str(jax.make_jaxpr(model.apply)(params, x))
+
+    assert "custom_vjp_call" in jaxpr() and built == []
+    monkeypatch.setenv(xla_cpu.NATIVE_ENV, "yes")
+    with pytest.raises(RunError, match=f"{xla_cpu.NATIVE_ENV}='yes': expected 0 or 1"):
+        jaxpr()
+    monkeypatch.setenv(xla_cpu.NATIVE_ENV, "1")
+    with pytest.raises(RunError, match="not available: no C\\+\\+ compiler found"):
+        jaxpr()
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    assert "custom_vjp_call" not in jaxpr()  # never on another backend, whatever is asked

@@ -1,5 +1,7 @@
 """The package's data flow is one way (docs/architecture.md): no module imports one of a later
-layer, at the top of the file or inside a function, and there is no import cycle."""
+layer, at the top of the file, inside a function or by `importlib.import_module` with a literal
+package path (an f-string's literal head: ``f"irdepth_jax.configs.{name}"`` imports every
+module of `configs`), and there is no import cycle."""
 
 import ast
 import pathlib
@@ -7,13 +9,16 @@ import pathlib
 PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
 
 LAYERS = [
-    ("foundation", ["config", "configs", "errors", "fileio", "video", "compile_cache", "hostmem"]),
+    ("foundation", ["config_schema", "configs", "config", "errors", "fileio", "video", "compile_cache",
+                    "hostmem"]),
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
+    ("CPU training kernels", ["xla_cpu"]),
     ("losses and metrics", ["losses", "metrics"]),
     ("data", ["data"]),
-    ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.checkpoint",
-                            "train.workdir_lock", "train.runlog", "train.variables", "train.legacy_names"]),
+    ("run directories and checkpoints", ["runs"]),
+    ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.workdir_lock",
+                            "train.runlog"]),
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
     ("runs and deployment", ["evaluate", "predict", "predict_settings", "pointcloud",
@@ -55,11 +60,44 @@ def imports(path: pathlib.Path) -> set[str]:
         elif isinstance(node, ast.Import):
             found.update(a.name[len("irdepth_jax."):] for a in node.names
                          if a.name.startswith("irdepth_jax."))
+        elif isinstance(node, ast.Call) and _is_import_module(node.func) and node.args:
+            target = _literal_head(node.args[0])
+            if target.startswith("irdepth_jax."):
+                found.add(target[len("irdepth_jax."):])
     return found
 
 
+def expand(deps: set[str], modules: set[str]) -> set[str]:
+    """`deps` with each ``X.*`` (an importlib load of any module of X) as X and its modules."""
+    out = set()
+    for dep in deps:
+        if dep.endswith(".*"):
+            base = dep[:-2]
+            out |= {base} | {m for m in modules if m.startswith(base + ".")}
+        else:
+            out.add(dep)
+    return out
+
+
+def _is_import_module(func: ast.expr) -> bool:
+    """`importlib.import_module` or a bare `import_module`."""
+    return (isinstance(func, ast.Attribute) and func.attr == "import_module") or (
+        isinstance(func, ast.Name) and func.id == "import_module")
+
+
+def _literal_head(arg: ast.expr) -> str:
+    """The module path a call imports, as far as it is literal: a string constant whole; an
+    f-string ``'P.{...}'`` as ``P.*`` (any module of P); '' otherwise."""
+    if isinstance(arg, ast.Constant) and isinstance(arg.value, str):
+        return arg.value
+    if isinstance(arg, ast.JoinedStr) and arg.values and isinstance(arg.values[0], ast.Constant):
+        return str(arg.values[0].value).rstrip(".") + ".*"
+    return ""
+
+
 def graph() -> dict[str, set[str]]:
-    return {module_name(p): imports(p) for p in PACKAGE.rglob("*.py")}
+    found = {module_name(p): imports(p) for p in PACKAGE.rglob("*.py")}
+    return {module: expand(deps, set(found)) for module, deps in found.items()}
 
 
 def test_every_module_has_a_layer():
@@ -98,6 +136,21 @@ def test_no_import_cycle():
             visit(module, [module])
     # a package's __init__ importing its own submodules is not a cycle of ours
     assert [c for c in cycles if len(set(c)) > 1 and "" not in c] == []
+
+
+def test_the_checker_sees_importlib_loads(tmp_path):
+    source = tmp_path / "m.py"
+    source.write_text("import importlib\nfrom importlib import import_module\n"
+                      "def f(name):\n    importlib.import_module(f'irdepth_jax.configs.{name}')\n"
+                      "    import_module('irdepth_jax.train.phase')\n    importlib.import_module(name)\n")
+    assert imports(source) == {"configs.*", "train.phase"}
+    assert expand(imports(source), {"configs.tiny", "train.phase"}) == {"configs", "configs.tiny", "train.phase"}
+
+
+def test_config_loads_the_presets_and_they_do_not_import_it():
+    edges = graph()
+    assert {"configs", "configs.tiny", "configs.paper"} <= edges["config"]  # get_config's importlib load
+    assert all("config" not in deps for module, deps in edges.items() if module.startswith("configs"))
 
 
 def test_the_checker_sees_function_level_imports(tmp_path):

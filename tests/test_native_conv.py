@@ -1,15 +1,19 @@
-"""The native kernel gradient (`irdepth_jax.models.native_conv`, a C++ XLA FFI custom call built
-on first use) against a float64 numpy sum worked from the definition, and against autodiff of
-`lax.conv_general_dilated`; where `conv.kernel_gradient` takes it; what happens without it.
+"""The native kernel gradient (`irdepth_jax.xla_cpu.native_conv`, a C++ XLA FFI custom call,
+opt-in) against a float64 numpy sum worked from the definition, and against autodiff of
+`lax.conv_general_dilated`; where `conv.kernel_gradient` takes it; that a default run never
+builds it, that asking for it where it cannot build is refused, and that concurrent builds do
+not share a temporary file.
 
 The kernel tiles input channels by up to 12 (AVX-512; 6 elsewhere) and output channels by 32
 (16), so the cases use input channel counts that leave remainders (1, 13, 40) and one and two
 output tiles, odd image sizes, asymmetric paddings and paddings wider than the kernel.
 """
 
+import functools
 import os
 import subprocess
 import sys
+import threading
 
 import flax.linen as nn
 import jax
@@ -18,13 +22,13 @@ import numpy as np
 import pytest
 from jax import lax
 
-from irdepth_jax.models import conv, native_conv
+from irdepth_jax.xla_cpu import NATIVE_ENV, conv, layers, native_conv
 
 NHWC = ("NHWC", "HWIO", "NHWC")
 
 needs_native = pytest.mark.skipif(
     not native_conv.available(),
-    reason="the native kernel could not be built here (no C++ compiler, or IRDEPTH_NATIVE_KERNELS=0)")
+    reason="the native kernel could not be built here (no C++ compiler)")
 
 
 def kernel_gradient_by_definition(x, g, kernel_size, pads):
@@ -80,8 +84,8 @@ def test_native_kernel_gradient_is_deterministic_and_matches_autodiff_on_a_large
 
 
 @needs_native
-def test_where_the_kernel_gradient_takes_the_native_kernel(monkeypatch):
-    method, tile = conv.kernel_gradient_method, native_conv.tile_channels()
+def test_where_the_kernel_gradient_takes_the_native_kernel():
+    method, tile = functools.partial(conv.kernel_gradient_method, native=True), native_conv.tile_channels()
     assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)) == "native"  # the UNet's full-resolution layers
     assert method((4, 128, 160, 128), (4, 128, 160, 64), (3, 3)) == "native"
     assert method((4, 256, 320, 1), (4, 256, 320, 32), (3, 3)) == "native"  # the 1-channel input layer
@@ -89,7 +93,7 @@ def test_where_the_kernel_gradient_takes_the_native_kernel(monkeypatch):
     assert method((4, 256, 320, 64), (4, 256, 320, tile + 1), (3, 3)) != "native"  # not whole tiles
     assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3), jnp.float64) != "native"
     assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3), jnp.bfloat16) != "native"
-    monkeypatch.setattr(conv, "USE_NATIVE", False)
+    method = conv.kernel_gradient_method  # without the native kernel: the XLA ways
     assert method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)) == "row_blocks"
     assert method((4, 128, 160, 128), (4, 128, 160, 64), (3, 3)) == "winograd"
 
@@ -97,22 +101,24 @@ def test_where_the_kernel_gradient_takes_the_native_kernel(monkeypatch):
 @needs_native
 @pytest.mark.parametrize("kernel_size", [(3, 3), (1, 1)])
 def test_conv_module_with_the_native_kernel_matches_flax(kernel_size):
-    """`conv.Conv`'s parameter gradient through the native kernel (3x3 and the 1x1 einsum's
-    backward on images) against `flax.linen.Conv`'s autodiff; the jaxpr has the custom call."""
+    """`flax.linen.Conv`'s parameter gradient under the CPU layers with the native kernel (3x3 and
+    the 1x1 einsum's backward on images) against its plain autodiff; the jaxpr has the custom
+    call."""
     features = native_conv.tile_channels()
     x = jnp.asarray(np.random.default_rng(2).standard_normal((2, 13, 10, 7)), jnp.float32)
-    ours, theirs = (cls(features, kernel_size, padding="SAME") for cls in (conv.Conv, nn.Conv))
-    params = theirs.init(jax.random.key(0), x)
+    module = nn.Conv(features, kernel_size, padding="SAME")
+    params = module.init(jax.random.key(0), x)
     w = jnp.asarray(np.random.default_rng(3).standard_normal((2, 13, 10, features)), jnp.float32)
+    loss = jax.grad(lambda p, x: jnp.sum(w * module.apply(p, x)), (0, 1))
 
-    def grads(module):
-        return jax.jit(jax.grad(lambda p, x: jnp.sum(w * module.apply(p, x)), (0, 1)))(params, x)
+    def native_loss(p, x):
+        with nn.intercept_methods(functools.partial(layers.intercept, native=True)):
+            return loss(p, x)
 
-    for got, want in zip(jax.tree.leaves(grads(ours)), jax.tree.leaves(grads(theirs))):
+    for got, want in zip(jax.tree.leaves(jax.jit(native_loss)(params, x)), jax.tree.leaves(jax.jit(loss)(params, x))):
         np.testing.assert_allclose(np.asarray(got), np.asarray(want), rtol=0,
                                    atol=2e-6 * float(jnp.abs(want).max()))
-    jaxpr = str(jax.make_jaxpr(jax.grad(lambda p, x: jnp.sum(w * ours.apply(p, x))))(params, x))
-    assert native_conv.TARGET in jaxpr
+    assert native_conv.TARGET in str(jax.make_jaxpr(native_loss)(params, x))
 
 
 def _in_subprocess(code: str, **env) -> subprocess.CompletedProcess:
@@ -129,7 +135,7 @@ def test_a_fresh_machine_builds_the_kernel_into_its_cache(tmp_path):
     np.save(tmp_path / "x.npy", np.asarray(x))
     np.save(tmp_path / "g.npy", np.asarray(g))
     code = ("import numpy as np, jax\n"
-            "from irdepth_jax.models import native_conv\n"
+            "from irdepth_jax.xla_cpu import native_conv\n"
             f"x, g = np.load({str(tmp_path / 'x.npy')!r}), np.load({str(tmp_path / 'g.npy')!r})\n"
             f"np.save({str(tmp_path / 'dw.npy')!r}, np.asarray(jax.jit(native_conv.kernel_gradient_native, "
             f"static_argnums=(2, 3))(x, g, (3, 3), {pads!r})))")
@@ -140,19 +146,77 @@ def test_a_fresh_machine_builds_the_kernel_into_its_cache(tmp_path):
     np.testing.assert_array_equal(np.load(tmp_path / "dw.npy"), np.asarray(here))
 
 
-def test_switched_off_or_unbuildable_the_kernel_gradient_keeps_its_xla_ways(tmp_path):
-    code = ("import warnings; warnings.simplefilter('always')\n"
-            "from irdepth_jax.models import conv, native_conv\n"
-            "print(native_conv.available(), conv.kernel_gradient_method((4, 256, 320, 64), (4, 256, 320, 32), (3, 3)))")
-    off = _in_subprocess(code, IRDEPTH_NATIVE_KERNELS="0")
-    assert off.returncode == 0, off.stderr
-    assert off.stdout.split() == ["False", "row_blocks"]
-    # a compiler that fails: a warning that says so, and the XLA ways (an empty cache: no old build)
-    failing = _in_subprocess(code, CXX="false", XDG_CACHE_HOME=str(tmp_path))
+TRAIN_A_CONV = (
+    "import jax, jax.numpy as jnp, flax.linen as nn\n"
+    "from irdepth_jax.errors import RunError\n"
+    "from irdepth_jax.xla_cpu import native_conv, training_layers\n"
+    "x = jnp.ones((2, 16, 16, 8)); m = nn.Conv(32, (3, 3)); p = m.init(jax.random.key(0), x)\n"
+    "def grads(p):\n"
+    "    with training_layers():\n"
+    "        return jax.grad(lambda p: jnp.sum(m.apply(p, x) ** 2))(p)\n"
+    "try:\n"
+    "    text = jax.jit(grads).lower(p).as_text()\n"
+    "except RunError as e:\n"
+    "    print('refused:', e)\n"
+    "else:\n"
+    "    print(native_conv.TARGET in text, native_conv._loaded.cache_info().currsize)\n")
+
+
+def test_a_default_run_never_builds_or_loads_the_kernel(tmp_path):
+    """Unset (or 0): the XLA ways, and the build is not even tried (an empty cache stays empty)."""
+    for value in (None, "0"):
+        env = {k: v for k, v in os.environ.items() if k != NATIVE_ENV}
+        if value is not None:
+            env[NATIVE_ENV] = value
+        done = subprocess.run([sys.executable, "-c", TRAIN_A_CONV], capture_output=True, text=True, timeout=300,
+                              env={**env, "JAX_PLATFORMS": "cpu", "XDG_CACHE_HOME": str(tmp_path)})
+        assert done.returncode == 0, done.stderr
+        assert done.stdout.split() == ["False", "0"], value
+    assert not list(tmp_path.rglob("*"))
+
+
+def test_asked_for_but_unbuildable_is_refused_with_the_reason(tmp_path):
+    failing = _in_subprocess(TRAIN_A_CONV, CXX="false", XDG_CACHE_HOME=str(tmp_path), **{NATIVE_ENV: "1"})
     assert failing.returncode == 0, failing.stderr
-    assert failing.stdout.split() == ["False", "row_blocks"]
-    assert "native convolution kernel could not be built" in failing.stderr
-    assert not list(tmp_path.rglob("*.so"))
+    assert failing.stdout.startswith(f"refused: {NATIVE_ENV}=1: the native convolution kernel is not available: "
+                                     "the build or load failed: false ")
+    assert not list(tmp_path.rglob("*.so")) and not list(tmp_path.rglob("*.tmp"))
+
+
+def test_concurrent_builds_write_temporary_files_of_their_own(tmp_path, monkeypatch):
+    """Two threads of one process building at once (same pid) compile to different temporary
+    files and each renames its own into place."""
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    outputs, both_started = [], threading.Barrier(2)
+
+    def fake_compiler(command, **kwargs):
+        if "--version" in command:
+            return subprocess.CompletedProcess(command, 0, "fake 1.0", "")
+        output = command[command.index("-o") + 1]
+        outputs.append(output)
+        both_started.wait(timeout=30)  # the second build starts before the first one finishes
+        with open(output, "w") as f:
+            f.write(output)
+        return subprocess.CompletedProcess(command, 0, "", "")
+
+    monkeypatch.setattr(native_conv.subprocess, "run", fake_compiler)
+    results, errors = [], []
+
+    def build():
+        try:
+            results.append(native_conv._build("c++"))
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(e)
+
+    threads = [threading.Thread(target=build) for _ in range(2)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert errors == [] and len(results) == 2 and results[0] == results[1]
+    assert len(set(outputs)) == 2
+    assert results[0].read_text() in outputs  # one whole build in place, no leftovers
+    assert [p.name for p in results[0].parent.iterdir()] == [results[0].name]
 
 
 def test_calling_the_native_kernel_without_it_says_why(monkeypatch):
@@ -163,15 +227,16 @@ def test_calling_the_native_kernel_without_it_says_why(monkeypatch):
 
 
 @needs_native
-def test_the_kernels_flops_are_counted_as_xla_counts_the_matmuls_they_replace(monkeypatch):
+def test_the_kernels_flops_are_counted_as_xla_counts_the_matmuls_they_replace():
     """XLA's cost analysis counts a custom call as no FLOPs; `flops_in` adds 2 x kh*kw*C_in*C_out x
     B*H'*W' per call, so the benchmarks' GFLOP/s keep counting the same arithmetic."""
     x, k = jnp.ones((2, 16, 20, 8)), jnp.ones((3, 3, 8, 32))
 
-    def loss(x, k):
-        return jnp.sum(conv.conv_general_dilated(x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC) ** 2)
+    def loss(x, k, native=True):
+        return jnp.sum(conv.conv_general_dilated(x, k, (1, 1), ((1, 1), (1, 1)), dimension_numbers=NHWC,
+                                                 native=native) ** 2)
 
     text = jax.jit(jax.grad(loss, 1)).lower(x, k).compile().as_text()
     assert native_conv.flops_in(text) == 2 * 9 * 8 * 32 * (2 * 16 * 20)
-    monkeypatch.setattr(conv, "USE_NATIVE", False)
-    assert native_conv.flops_in(jax.jit(jax.grad(loss, 1)).lower(x, k).compile().as_text()) == 0
+    xla_ways = jax.jit(jax.grad(functools.partial(loss, native=False), 1)).lower(x, k).compile().as_text()
+    assert native_conv.flops_in(xla_ways) == 0

@@ -15,8 +15,8 @@ from irdepth_jax.imaging.color import CLASS_HUES
 from irdepth_jax.imaging.tonemap import clahe
 from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD, DepthAnythingV2, network_input
 from irdepth_jax.models.pipeline import depth_model_config, raw_to_depth, run_pipeline, unet_outputs, unet_to_hsv
+from irdepth_jax.runs.variables import init_unet, random_depth
 from irdepth_jax.train.steps import stage2_loss_fn
-from irdepth_jax.train.variables import init_unet, random_depth
 
 CFG = get_config("tiny")
 
@@ -164,3 +164,27 @@ def test_baseline_preprocessing_images(frames):
     da = random_depth(cfg)
     loss, (metrics, _) = jax.jit(loss_fn)(da, {}, None, batch, jax.random.PRNGKey(0))
     assert np.isfinite(float(loss)) and "sky" not in metrics
+
+
+@pytest.mark.parametrize("raw_scale", ["fixed", "percentile"])
+def test_16_bit_counts_are_normalised_once_by_the_pipeline_to_their_full_scale(raw_scale):
+    """`unet_outputs` (the public path from counts) gives the UNet 16-bit counts / (2^16 - 1)
+    with data.raw_bits=16, not a 14-bit reading of them; the UNet itself takes only the image."""
+    from irdepth_jax.models.unet import MTSAUNet
+
+    cfg = apply_overrides(CFG, ["data.raw_bits=16", f"unet.raw_scale={raw_scale}"])
+    unet = init_unet(cfg)
+    counts = np.random.default_rng(3).integers(20000, 60000, (1, 16, 20)).astype(np.uint16)
+    got = jax.jit(unet_outputs, static_argnums=2)(unet, jnp.asarray(counts), cfg)
+    image = counts.astype(np.float64) / (2**16 - 1)
+    if raw_scale == "percentile":
+        lo, hi = np.percentile(image, [1, 99])
+        image = np.clip((image - lo) / (hi - lo), 0, 1)
+    np.testing.assert_allclose(got["input_gradient"][..., 0],
+                               np.abs(np.diff(image, axis=2, append=image[:, :, -1:]))
+                               + np.abs(np.diff(image, axis=1, append=image[:, -1:])), atol=2e-6)
+    want = MTSAUNet(cfg.unet).apply(unet, jnp.asarray(image, jnp.float32))
+    for key in want:
+        np.testing.assert_allclose(got[key], want[key], atol=2e-5, err_msg=key)
+    # a 14-bit reading would clip every one of these counts to 1: a flat image, no gradient
+    assert (counts / (2**14 - 1)).min() > 1.0 and float(got["input_gradient"].max()) > 0.1

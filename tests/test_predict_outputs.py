@@ -18,7 +18,8 @@ from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.depth_colours import BAR_HEIGHT, LABEL_HEIGHT
 from irdepth_jax.fileio import write_png
 from irdepth_jax.models.pipeline import run_pipeline
-from irdepth_jax.train.variables import init_unet, random_depth, save_model
+from irdepth_jax.runs.variables import init_unet, random_depth
+from irdepth_jax.train.state import save_model
 
 CFG = get_config("tiny")
 H, W = 40, 56

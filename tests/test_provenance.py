@@ -12,7 +12,7 @@ from trained_runs import DATA, STEPS
 from irdepth_jax import cli
 from irdepth_jax.cli_commands import quickstart_next_steps
 from irdepth_jax.config import get_config
-from irdepth_jax.train.variables import load_model
+from irdepth_jax.runs.variables import load_model
 
 
 def run(argv, capsys):

@@ -15,7 +15,7 @@ from trained_runs import DATA, copy_run
 from irdepth_jax import cli
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.predict import predict_files
-from irdepth_jax.train.variables import load_model
+from irdepth_jax.runs.variables import load_model
 
 QUICK = ["--no-progress", "--devices", "1", "log_every=1", "checkpoint_every=50", "eval_every=0"]
 H, W = 32, 48

@@ -19,9 +19,9 @@ from irdepth_jax.config import (
     to_dict,
     upgrade_dict,
 )
-from irdepth_jax.train.checkpoint import Checkpointer, restore_items
+from irdepth_jax.runs.checkpoint import Checkpointer, restore_items
+from irdepth_jax.runs.variables import init_unet
 from irdepth_jax.train.state import NO_UPDATE, TrainState, stage1_optimizer
-from irdepth_jax.train.variables import init_unet
 
 CFG = apply_overrides(get_config("tiny"), ["stage1.multitask=false"])  # has the no_update group
 
@@ -164,7 +164,7 @@ def test_resuming_a_run_whose_config_json_has_the_old_key(tmp_path):
 
 
 def test_legacy_names_rename_only_what_was_renamed():
-    from irdepth_jax.train.legacy_names import from_legacy, has_legacy_keys, to_legacy
+    from irdepth_jax.runs.legacy_names import from_legacy, has_legacy_keys, to_legacy
 
     state = optax.MaskedState(inner_state={"dec_grad_up12": 1, "head_saturation": 2,
                                            "frozen": 3, "dec_grad": 4})
@@ -178,3 +178,11 @@ def test_legacy_names_rename_only_what_was_renamed():
     assert to_legacy(new) == tree
     assert has_legacy_keys(tree) and not has_legacy_keys(new)
     assert not has_legacy_keys({"x": {"frozen": 1}, "y": [{"dec_seg_up0": 2}]})
+
+
+def test_the_legacy_group_name_maps_to_the_optimizer_group_of_today():
+    """`runs.legacy_names` (which imports nothing of train/) names the group `train.state` uses."""
+    from irdepth_jax.runs.legacy_names import LEGACY_GROUP_NAMES
+    from irdepth_jax.train.state import NO_UPDATE
+
+    assert dict(LEGACY_GROUP_NAMES)["frozen"] == NO_UPDATE

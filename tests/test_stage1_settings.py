@@ -13,7 +13,7 @@ from irdepth_jax import cli
 from irdepth_jax.config import STAGE1_MODEL_KEYS
 from irdepth_jax.data.rawio import read_frames
 from irdepth_jax.predict import Predictor
-from irdepth_jax.train.variables import load_model
+from irdepth_jax.runs.variables import load_model
 
 
 def run(argv, capsys):

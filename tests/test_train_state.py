@@ -10,9 +10,9 @@ import pytest
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import device_batch
 from irdepth_jax.data.synthetic import render_scene
+from irdepth_jax.runs.variables import init_unet
 from irdepth_jax.train.state import TrainState, base_optimizer, label_params, stage1_optimizer, stage2_optimizer
 from irdepth_jax.train.steps import make_train_step, stage1_loss_fn, stage1_targets
-from irdepth_jax.train.variables import init_unet
 
 CFG = get_config("tiny")
 

@@ -19,9 +19,9 @@ from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 from irdepth_jax.errors import RunError
 from irdepth_jax.evaluators import evaluate_stage1
 from irdepth_jax.models.pipeline import unet_input
+from irdepth_jax.runs.variables import init_unet
 from irdepth_jax.train.parallel import DataParallel
 from irdepth_jax.train.stages import sky_reference_depth
-from irdepth_jax.train.variables import init_unet
 
 CFG = get_config("tiny")
 

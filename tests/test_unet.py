@@ -54,8 +54,9 @@ def tiny():
     cfg = get_config("tiny").unet
     model = MTSAUNet(cfg)
     rng = np.random.default_rng(0)
-    raw = jnp.asarray(rng.integers(3000, 6000, (2, H, W)), jnp.uint16)
-    return cfg, model, raw, numpy_variables(model, raw)
+    counts = jnp.asarray(rng.integers(3000, 6000, (2, H, W)), jnp.uint16)
+    image = normalize_raw(counts, cfg.raw_scale)  # what models.pipeline.unet_input gives the UNet
+    return cfg, model, image, numpy_variables(model, image)
 
 
 def apply_fn(model, train):
@@ -103,17 +104,13 @@ def test_tiny_train_step_shapes_ranges_and_finite_grads(tiny):
         assert np.isfinite(g).all(), path
     for module in ("head_recon", "head_seg", "head_saturation", "enc0", "dec_seg_up0"):
         assert sum(float(jnp.abs(g).sum()) for g in jax.tree.leaves(grads[module])) > 0, module
-    # the input gradient is the GCM of the normalised raw frame
-    np.testing.assert_allclose(
-        out["input_gradient"],
-        gradient_magnitude(normalize_raw(raw[..., None], cfg.raw_scale)),
-        atol=1e-6,
-    )
+    # the input gradient is the GCM of the input image
+    np.testing.assert_allclose(out["input_gradient"], gradient_magnitude(raw[..., None]), atol=1e-6)
 
 
 def test_batchnorm_train_updates_stats_and_eval_uses_running_stats(tiny):
     cfg, model, raw, variables = tiny
-    other = raw.at[1].set(raw[1] // 2 + 200)  # same first image, different second one
+    other = raw.at[1].set(raw[1] ** 2)  # same first image, different second one
     train, evaluate = apply_fn(model, True), apply_fn(model, False)
 
     out_train, updates = train(variables, raw)
@@ -126,8 +123,7 @@ def test_batchnorm_train_updates_stats_and_eval_uses_running_stats(tiny):
     assert np.abs(out_eval["recon"] - out_train["recon"]).max() > 1e-4
 
     # first BatchNorm: new mean = momentum * 0 + (1 - momentum) * batch mean of conv0's output
-    x = normalize_raw(raw[..., None], cfg.raw_scale)
-    x = jnp.pad(x, ((0, 0), (0, 14), (0, 10), (0, 0)), mode="edge")  # 50x70 -> 64x80
+    x = jnp.pad(raw[..., None], ((0, 0), (0, 14), (0, 10), (0, 0)), mode="edge")  # 50x70 -> 64x80
     conv0 = nn.Conv(cfg.widths[0], (3, 3), use_bias=False).apply(
         {"params": variables["params"]["enc0"]["conv0"]}, x
     )
@@ -136,16 +132,20 @@ def test_batchnorm_train_updates_stats_and_eval_uses_running_stats(tiny):
     np.testing.assert_allclose(new_mean, expected, rtol=1e-4, atol=1e-7)
 
 
-def test_integer_and_float_inputs_agree(tiny):
-    cfg, model, raw, variables = tiny
+def test_the_unet_takes_a_normalised_image_not_counts(tiny):
+    """(B, H, W) and (B, H, W, 1) give the same; integer counts are refused (their bit depth is
+    the pipeline's to know: models.pipeline.unet_input), as are other shapes."""
+    cfg, model, image, variables = tiny
     evaluate = apply_fn(model, False)
-    out_raw = evaluate(variables, raw)
-    # (B, H, W, 1) float in [0, 1]
-    out_float = evaluate(variables, normalize_raw(raw, cfg.raw_scale)[..., None])
-    check_outputs(out_raw, 2, cfg.num_classes)
-    for key in out_raw:
-        np.testing.assert_allclose(out_raw[key], out_float[key], atol=1e-5)
-    with pytest.raises(ValueError, match="expected raw"):
+    out = evaluate(variables, image)
+    check_outputs(out, 2, cfg.num_classes)
+    out_nhwc = evaluate(variables, image[..., None])
+    for key in out:
+        np.testing.assert_array_equal(out[key], out_nhwc[key])
+    counts = jnp.asarray(np.random.default_rng(1).integers(3000, 6000, (2, H, W)), jnp.uint16)
+    with pytest.raises(ValueError, match="expected a float image in \\[0, 1\\], got uint16; normalise raw counts"):
+        model.apply(variables, counts)
+    with pytest.raises(ValueError, match="expected an image"):
         model.apply(variables, jnp.zeros((2, H, W, 3)))
 
 
@@ -153,7 +153,7 @@ def test_paper_preset_channel_widths():
     cfg = get_config("paper").unet
     assert cfg.widths == (32, 64, 128, 256) and cfg.bottleneck == 512 and cfg.num_classes == 6
     shapes = jax.eval_shape(
-        MTSAUNet(cfg).init, jax.random.key(0), jax.ShapeDtypeStruct((1, 32, 32), jnp.uint16)
+        MTSAUNet(cfg).init, jax.random.key(0), jax.ShapeDtypeStruct((1, 32, 32), jnp.float32)
     )["params"]
     kernels = {
         "/".join(k[:-1]): v.shape
@@ -227,8 +227,8 @@ def test_rgg_attention_scales_both_inputs_by_one_plus_a():
 @pytest.mark.multidevice
 def test_pmap_batchnorm_statistics_match_the_whole_batch(tiny, four_devices):
     cfg, _, _, variables = tiny
-    raw = jnp.asarray(np.random.default_rng(5).integers(3000, 6000, (4, H, W)), jnp.uint16)
-    raw = raw.at[2:].set(raw[2:] // 2)  # device-local statistics would differ clearly
+    raw = jnp.asarray(np.random.default_rng(5).uniform(0.2, 0.4, (4, H, W)), jnp.float32)
+    raw = raw.at[2:].set(raw[2:] / 2)  # device-local statistics would differ clearly
     mapped = MTSAUNet(cfg, axis_name="batch")
     step = jax.pmap(
         functools.partial(mapped.apply, train=True, mutable=["batch_stats"]),

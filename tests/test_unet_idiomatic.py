@@ -4,13 +4,12 @@ with our parameter tensors, the same outputs in eval and train mode and the same
 extra operations (fewer torch operator calls per train step)."""
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
 torch = pytest.importorskip("torch", reason="the PyTorch opponent needs torch (the [torch] extra)")
 
-from test_unet_torch import CASES, TOL, TRAIN_TOL, _assert_close, _nhwc, _random_variables, _raw  # noqa: E402
+from test_unet_torch import CASES, TOL, TRAIN_TOL, _assert_close, _image, _nhwc, _random_variables, _raw  # noqa: E402
 
 from experiments.bench_unet import (  # noqa: E402
     ADADELTA,
@@ -43,7 +42,7 @@ def test_outputs_and_loss_match_ours(case, train):
         out, _ = MTSAUNet(cfg).apply(v, r, train=train, mutable=["batch_stats"])
         return out, stage1_loss(out, target, labels)
 
-    ours, ours_loss = jax.jit(ours_fn)(variables, jnp.asarray(raw))
+    ours, ours_loss = jax.jit(ours_fn)(variables, _image(raw, cfg))
     model = load_flax_params(MTSAUNetIdiomatic(cfg), variables).train(train)
     assert all(type(m) is torch.nn.BatchNorm2d for m in model.modules() if "BatchNorm" in type(m).__name__)
     with torch.no_grad():

@@ -39,8 +39,9 @@ from experiments.unet_torch import (  # noqa: E402
     load_flax_params,
 )
 from irdepth_jax.config import get_config  # noqa: E402
-from irdepth_jax.models import conv  # noqa: E402
+from irdepth_jax.imaging.raw import normalize_raw  # noqa: E402
 from irdepth_jax.models.unet import MTSAUNet  # noqa: E402
+from irdepth_jax.xla_cpu import conv, training_layers  # noqa: E402
 
 pytestmark = pytest.mark.parity
 TOL = 1e-5  # float32: max |ours - torch| <= TOL * max(1, max |torch|), per output / tensor
@@ -67,6 +68,12 @@ def _raw(shape, seed=0):
     return np.clip(counts, 0, 2**14 - 1).astype(np.uint16)
 
 
+def _image(raw, cfg):
+    """Ours' input of `raw` (the twin normalises the counts itself): the pipeline's normalisation
+    (`models.pipeline.unet_input`) of 14-bit counts."""
+    return normalize_raw(jnp.asarray(raw), cfg.raw_scale, bits=14)
+
+
 @functools.cache
 def _random_variables(case, seed=0):
     """Random variables of ours (numpy; shared, not to be changed), every leaf random so that no
@@ -74,7 +81,7 @@ def _random_variables(case, seed=0):
     init), BatchNorm scales 1 + N(0, 0.2^2), biases and running means N(0, 0.2^2), running
     variances U(0.5, 1.5). Drawn from the shapes (`jax.eval_shape`: nothing to compile)."""
     cfg, shape = CASES[case]
-    shapes = jax.eval_shape(MTSAUNet(cfg).init, jax.random.key(0), jnp.asarray(_raw(shape)))
+    shapes = jax.eval_shape(MTSAUNet(cfg).init, jax.random.key(0), jnp.zeros(shape, jnp.float32))
     rng = np.random.default_rng(seed)
 
     def draw(path, leaf):
@@ -182,7 +189,7 @@ def test_parameter_count_and_names():
 def test_forward_matches(case, train):
     cfg, raw, variables, twin = _setup(case)
     apply = jax.jit(lambda v, r: MTSAUNet(cfg).apply(v, r, train=train, mutable=["batch_stats"]))
-    ours, updates = apply(variables, jnp.asarray(raw))
+    ours, updates = apply(variables, _image(raw, cfg))
     twin.train(train)
     with torch.no_grad():
         ref = twin(torch.from_numpy(raw))
@@ -207,9 +214,10 @@ def test_forward_matches(case, train):
 @pytest.mark.parametrize("winograd", [False, pytest.param(True, marks=pytest.mark.slow)],
                          ids=["direct", "winograd"])
 def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
-    """Train mode with float64 networks: outputs, running statistics and every parameter's
-    gradient of the benchmark's Stage I loss; with `winograd`, every 3x3 kernel gradient by
-    Winograd (the `paper` preset's wide layers take it; `tiny`'s narrow ones would not)."""
+    """Train mode with float64 networks, under the CPU training layers (`xla_cpu`): outputs,
+    running statistics and every parameter's gradient of the benchmark's Stage I loss; with
+    `winograd`, every 3x3 kernel gradient by Winograd (the `paper` preset's wide layers take it;
+    `tiny`'s narrow ones would not)."""
     if winograd:
         monkeypatch.setattr(conv, "WINOGRAD_MIN_CHANNELS", 0)
     cfg, raw, variables, twin = _setup(case)
@@ -218,7 +226,7 @@ def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
 
     def loss_fn(params, batch_stats, raw, target, labels):
         seen, interceptor = _capture_inputs()
-        with nn.intercept_methods(interceptor):
+        with training_layers(), nn.intercept_methods(interceptor):
             out, updates = model.apply(
                 {"params": params, "batch_stats": batch_stats}, raw, train=True,
                 mutable=["batch_stats"],
@@ -228,7 +236,7 @@ def test_float64_train_forward_and_gradients_match(case, winograd, monkeypatch):
     with jax.enable_x64(True):
         v64 = jax.tree.map(lambda x: jnp.asarray(x, jnp.float64), variables)
         (loss, (out, batch_stats, seen)), grads = jax.jit(jax.value_and_grad(loss_fn, has_aux=True))(
-            v64["params"], v64["batch_stats"], jnp.asarray(raw), jnp.asarray(target, jnp.float64),
+            v64["params"], v64["batch_stats"], _image(raw, cfg), jnp.asarray(target, jnp.float64),
             jnp.asarray(labels),
         )
         assert out["recon"].dtype == grads["head_recon"]["kernel"].dtype == jnp.float64
@@ -268,12 +276,12 @@ def _train_steps(case, tx, torch_optimizer, steps, float64=False):
                     MTSAUNet(cfg).apply(variables, raw, train=True, mutable=["batch_stats"])
                 return seen
 
-            _feed(twin, cfg, jax.device_get(jax.jit(forward)(cast_variables, jnp.asarray(raw))))
+            _feed(twin, cfg, jax.device_get(jax.jit(forward)(cast_variables, _image(raw, cfg))))
         step = make_train_step(MTSAUNet(cfg), tx)
         opt_state = tx.init(params)
         for _ in range(steps):
             params, batch_stats, opt_state, loss = step(
-                params, batch_stats, opt_state, jnp.asarray(raw), jnp.asarray(target, cast),
+                params, batch_stats, opt_state, _image(raw, cfg), jnp.asarray(target, cast),
                 jnp.asarray(labels),
             )
             torch_loss = torch_step(*args).item()

@@ -87,7 +87,8 @@ class Fingerprint:
 def untrained_stage2(work, cfg):
     """Saves an untrained Stage II model of `cfg` (random UNet and Depth Anything V2) as a run
     in `work`; returns (work, unet variables, depth params)."""
-    from irdepth_jax.train.variables import init_unet, random_depth, save_model
+    from irdepth_jax.runs.variables import init_unet, random_depth
+    from irdepth_jax.train.state import save_model
 
     unet, depth = init_unet(cfg), random_depth(cfg)
     save_model(str(work), cfg, unet, depth)

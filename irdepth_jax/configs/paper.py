@@ -1,6 +1,6 @@
 """The `paper` preset: the paper's model sizes and training schedule (meant for a GPU)."""
 
-from irdepth_jax.config import Config
+from irdepth_jax.config_schema import Config
 
 
 def get_config() -> Config:
@@ -13,8 +13,8 @@ def get_config() -> Config:
     ``irdepth train stage2 --preset paper --data DIR --workdir runs/s2 --stage1-checkpoint
     runs/s1``.
 
-    Measured: not timed end to end. On a 2-core CPU (docs/benchmarks.md) one Stage I train step
-    of its MTSA-UNet at batch 1 takes 1.6 s at 256x320 (``python experiments/bench_unet.py
-    --preset paper``), so its 50-epoch stages are impractical without an accelerator.
+    Time: not timed end to end; its Stage I train step on a CPU (docs/benchmarks.md, ``python
+    experiments/bench_unet.py --preset paper``) makes its 50-epoch stages impractical without
+    an accelerator.
     """
     return Config(name="paper")

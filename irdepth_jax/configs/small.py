@@ -1,6 +1,6 @@
 """The `small` preset: the committed synthetic-benchmark results (experiments/results/)."""
 
-from irdepth_jax.config import (
+from irdepth_jax.config_schema import (
     Config,
     DataConfig,
     DepthConfig,
@@ -20,9 +20,9 @@ def get_config() -> Config:
     the other table*.py scripts, whose default preset this is); also
     ``irdepth train stage1 --preset small --data DIR --workdir runs/s1``.
 
-    Measured: about 2 hours on 2 CPU cores for the seven tables x 3 seeds (33 training runs and
-    their evaluations, all cached); each table's `results.json` records its own wall time
-    (`wall_s`) and the machine. The depth network is the 192-wide ViT above, not ViT-S: a
+    Time: the seven tables x 3 seeds are 33 training runs and their evaluations, all cached;
+    docs/experiments.md gives the measured wall time, and each table's `results.json` records
+    its own (`wall_s`) and the machine. The depth network is the 192-wide ViT above, not ViT-S: a
     released ViT-S checkpoint needs ``depth.encoder=vits`` beside ``depth.checkpoint=PATH``.
     """
     # Stage II rate: from a random-init ViT, 1e-4 (head 1e-3) drove the metric head's

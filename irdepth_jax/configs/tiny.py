@@ -1,6 +1,6 @@
 """The `tiny` preset: seconds-sized models for the quickstart and the tests."""
 
-from irdepth_jax.config import (
+from irdepth_jax.config_schema import (
     Config,
     DataConfig,
     DepthConfig,
@@ -19,8 +19,7 @@ def get_config() -> Config:
     ``irdepth train stage1 --preset tiny --data DIR --workdir runs/s1`` and ``stage2``, and
     ``python experiments/table1_preprocessing.py --quick``).
 
-    Measured (docs/getting-started.md): ``irdepth quickstart`` takes 92 s with a cold compilation
-    cache, 60 s warm, on a 2-core CPU.
+    Time: docs/getting-started.md gives the quickstart's measured wall time on a 2-core CPU.
     """
     # Tuned so that `irdepth quickstart` shows clear learning in a few minutes on 2 CPU cores:
     # per-image percentile input scaling, and AdamW instead of AdaDelta for Stage I (AdaDelta's

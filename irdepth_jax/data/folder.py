@@ -1,6 +1,6 @@
 """Our on-disk dataset format: reader (`FolderDataset`) and writer (`write_sample`,
 `write_manifest`). The synthetic dataset writer behind `irdepth synth` (`write_synthetic_dataset`)
-is `irdepth_jax.data.synthetic_dataset`'s (its names are also importable from here, as before).
+is `irdepth_jax.data.synthetic_dataset`'s.
 
 ## Folder dataset format
 
@@ -47,7 +47,6 @@ unlabelled), `labeled` bool, `condition` str, `id` str.
 
 from __future__ import annotations
 
-import importlib
 import json
 import pathlib
 import re
@@ -337,13 +336,3 @@ class FolderDataset:
                             for i in idx) / DEPTH_SCALE
             self._max_depth[split] = value
         return self._max_depth[split]
-
-
-_MOVED = ("DEPTH_SPLIT", "SEG_SPLIT", "split_counts", "synthetic_manifest", "write_synthetic_dataset")
-"""Names that moved to `irdepth_jax.data.synthetic_dataset`, still importable from here."""
-
-
-def __getattr__(name):  # imported on use: synthetic_dataset imports this module
-    if name in _MOVED:
-        return getattr(importlib.import_module("irdepth_jax.data.synthetic_dataset"), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

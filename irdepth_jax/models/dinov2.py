@@ -25,8 +25,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
-from irdepth_jax.models.conv import Dense, materialize
-
 POS_EMBED_MODES = ("official", "transformers")
 _INTERPOLATE_OFFSET = 0.1  # the official code's work-around offset (DINOv2 without registers)
 _CUBIC_A = -0.75  # PyTorch's and OpenCV's bicubic coefficient (jax.image uses -0.5)
@@ -239,32 +237,6 @@ def _attention_bwd(scale, residuals, g):
 softmax_attention.defvjp(_attention_fwd, _attention_bwd)
 
 
-@jax.custom_vjp
-def gradient_fence(x):
-    """Identity whose gradient is computed whole before it is used: (B, N, D) -> (B, N, D).
-
-    Placed on the residual stream between blocks. Without it XLA:CPU fuses the residual
-    stream's gradient (a sum over the later blocks' contributions, elementwise) into every
-    consumer, recomputing the whole chain in each block's weight-gradient fusions: block 0's
-    did the work of all 12 (about a fifth of the ViT-S train step). The gradient goes through
-    `materialize`: an earlier version made it depend on one of its own values (+ 0 * g[0]),
-    which XLA fused all the same, into transposing copies that then took 27-54 ms each
-    (ViT-S train step at 518x518, batch 2: 5.56 -> 4.93 s with `materialize`).
-    """
-    return x
-
-
-def _fence_fwd(x):
-    return x, None
-
-
-def _fence_bwd(_, g):
-    return (materialize(g),)
-
-
-gradient_fence.defvjp(_fence_fwd, _fence_bwd)
-
-
 class Attention(nn.Module):
     """Multi-head self-attention with a fused qkv projection (official layout: q, k, v blocks);
     the kernel by `attention_implementation(attention, backend, dtype)`."""
@@ -277,10 +249,10 @@ class Attention(nn.Module):
     @nn.compact
     def __call__(self, x):
         """x: (B, N, D) -> (B, N, D)."""
-        qkv = Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
+        qkv = nn.Dense(3 * self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="qkv")(x)
         implementation = attention_implementation(self.attention, jax.default_backend(), self.dtype)
         out = attend(qkv, self.num_heads, implementation)
-        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(out)
+        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="proj")(out)
 
 
 class Mlp(nn.Module):
@@ -292,9 +264,9 @@ class Mlp(nn.Module):
 
     @nn.compact
     def __call__(self, x):
-        x = Dense(self.hidden, dtype=self.dtype, kernel_init=_dense_init(), name="fc1")(x)
+        x = nn.Dense(self.hidden, dtype=self.dtype, kernel_init=_dense_init(), name="fc1")(x)
         x = exact_gelu(x)
-        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="fc2")(x)
+        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="fc2")(x)
 
 
 class SwiGLUFFN(nn.Module):
@@ -307,8 +279,8 @@ class SwiGLUFFN(nn.Module):
     @nn.compact
     def __call__(self, x):
         hidden = (int(self.hidden * 2 / 3) + 7) // 8 * 8
-        x1, x2 = jnp.split(Dense(2 * hidden, dtype=self.dtype, kernel_init=_dense_init(), name="w12")(x), 2, -1)
-        return Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="w3")(jax.nn.silu(x1) * x2)
+        x1, x2 = jnp.split(nn.Dense(2 * hidden, dtype=self.dtype, kernel_init=_dense_init(), name="w12")(x), 2, -1)
+        return nn.Dense(self.dim, dtype=self.dtype, kernel_init=_dense_init(), name="w3")(jax.nn.silu(x1) * x2)
 
 
 class Block(nn.Module):
@@ -328,7 +300,7 @@ class Block(nn.Module):
         ffn_cls = {"mlp": Mlp, "swiglu": SwiGLUFFN}[self.ffn]
         attention = Attention(self.dim, self.num_heads, self.dtype, self.attention, name="attn")
         y = attention(nn.LayerNorm(**norm, name="norm1")(x))
-        x = gradient_fence(x + LayerScale(self.dim, name="ls1")(y))
+        x = x + LayerScale(self.dim, name="ls1")(y)
         y = ffn_cls(self.dim, int(self.dim * self.mlp_ratio), self.dtype, name="mlp")(
             nn.LayerNorm(**norm, name="norm2")(x)
         )
@@ -387,7 +359,7 @@ class DinoVisionTransformer(nn.Module):
         outputs = []
         for i in range(self.depth):
             tokens = block_cls(d, self.num_heads, self.mlp_ratio, self.ffn, self.dtype, self.attention,
-                               name=f"blocks_{i}")(gradient_fence(tokens))
+                               name=f"blocks_{i}")(tokens)
             if i in self.taps:
                 out = norm(tokens)[:, 1:]
                 self.sow("intermediates", f"tap_{len(outputs)}", out)

@@ -19,8 +19,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from irdepth_jax.models.conv import Conv, ConvTranspose
-
 
 def resize_bilinear_align_corners(x: jax.Array, size: tuple[int, int]) -> jax.Array:
     """Bilinear resize with PyTorch's align_corners=True semantics (corner pixels map onto corners).
@@ -47,9 +45,9 @@ def _lerp_axis(x: jax.Array, axis: int, n_out: int) -> jax.Array:
     return (below + (above - below) * frac).astype(x.dtype)
 
 
-def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, stride: int = 1) -> Conv:
+def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, stride: int = 1) -> nn.Conv:
     pad = (kernel - 1) // 2
-    return Conv(
+    return nn.Conv(
         features,
         (kernel, kernel),
         strides=(stride, stride),
@@ -59,6 +57,12 @@ def _conv(features: int, kernel: int, dtype, name: str, use_bias: bool = True, s
         name=name,
     )
 
+
+
+def _upsample(features: int, factor: int, dtype, name: str) -> nn.ConvTranspose:
+    """A transposed convolution whose stride equals its kernel: (B, h, w, C) -> (B, f h, f w, features)."""
+    return nn.ConvTranspose(features, (factor, factor), strides=(factor, factor), padding="VALID", dtype=dtype,
+                            name=name)
 
 class ResidualConvUnit(nn.Module):
     """x + conv2(relu(conv1(relu(x)))), 3x3 convs with bias."""
@@ -113,8 +117,8 @@ class DPTHead(nn.Module):
     def __call__(self, taps, grid):
         oc, dt = self.out_channels, self.dtype
         resize = {
-            0: ConvTranspose(oc[0], 4, dtype=dt, name="resize_layers_0"),
-            1: ConvTranspose(oc[1], 2, dtype=dt, name="resize_layers_1"),
+            0: _upsample(oc[0], 4, dt, "resize_layers_0"),
+            1: _upsample(oc[1], 2, dt, "resize_layers_1"),
             3: _conv(oc[3], 3, dt, "resize_layers_3", stride=2),
         }
         b = taps[0].shape[0]

@@ -1,6 +1,7 @@
-"""The whole model as pure functions: raw 14-bit -> MTSA-UNet -> HSV -> RGB -> depth.
+"""The whole model as pure functions: raw counts -> MTSA-UNet -> HSV -> RGB -> depth.
 
-    raw (B, H, W) uint16
+    raw (B, H, W) uint16 counts of cfg.data.raw_bits (14 or 16) bits
+      -> unet_input                  the one normalisation of raw counts, (B, H, W) in [0, 1]
       -> MTSAUNet (eval mode)       recon, saturation (B, H, W, 1); seg_logits (B, H, W, C)
       -> unet_to_hsv                 H = class hue of seg, S = saturation, V = recon
       -> hsv_to_rgb                  pseudo-RGB (B, H, W, 3) in [0, 1]
@@ -8,9 +9,10 @@
       -> DepthAnythingV2             depth (B, h, w)
       -> resize_depth                depth (B, H, W) in metres
 
-`run_pipeline` (jitted, `cfg` static) is the one path from raw counts to depth: Stage II's loss,
-`irdepth eval`, `irdepth predict`, the figures and `irdepth export` (`raw_to_depth`) all call
-it, so what is trained is what is evaluated, predicted and exported.
+`run_pipeline` (jitted, `cfg` static) is the one path from raw counts to depth: `irdepth eval`,
+`irdepth predict`, the figures and `irdepth export` (`raw_to_depth`) call it, and Stage II's
+loss its function unjitted (`pipeline_outputs`, traced inside the training step's own
+context), so what is trained is what is evaluated, predicted and exported.
 """
 
 from __future__ import annotations
@@ -92,11 +94,10 @@ def depth_from_rgb(da_params: Any, rgb: jax.Array, cfg: Config) -> jax.Array:
     return resize_depth(depth, rgb.shape[1:3])
 
 
-@functools.partial(jax.jit, static_argnames=("cfg",))
-def run_pipeline(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, cfg: Config,
-                 image: jax.Array | None = None, brightness: jax.Array | None = None
-                 ) -> dict[str, jax.Array | None]:
-    """The paper's pipeline on a batch of frames, jitted (`cfg` static); the one inference path.
+def pipeline_outputs(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, cfg: Config,
+                     image: jax.Array | None = None, brightness: jax.Array | None = None
+                     ) -> dict[str, jax.Array | None]:
+    """The paper's pipeline on a batch of frames (`run_pipeline` is this function jitted).
 
     Args:
       unet_vars: Stage I ``{'params', 'batch_stats'}`` (frozen: no gradient reaches them), or
@@ -134,6 +135,10 @@ def run_pipeline(unet_vars: dict | None, da_params: Any, raw: jax.Array | None, 
     rgb = jax.lax.stop_gradient(rgb)
     depth = None if da_params is None else depth_from_rgb(da_params, rgb, cfg)
     return {"depth": depth, "rgb": rgb, "hsv": hsv, "seg": seg, "sky": sky}
+
+
+run_pipeline = jax.jit(pipeline_outputs, static_argnames=("cfg",))
+"""`pipeline_outputs` jitted (`cfg` static): the one inference path."""
 
 
 @functools.partial(jax.jit, static_argnames=("cfg",))

@@ -22,7 +22,6 @@ from __future__ import annotations
 import flax.linen as nn
 
 from irdepth_jax.imaging.gradients import gradient_magnitude
-from irdepth_jax.models.conv import Conv, materialize
 
 
 class RGG(nn.Module):
@@ -51,14 +50,9 @@ class RGG(nn.Module):
                 f"RGG: expected up and skip (B, h, w, C) of one shape and input_grad (B, h, w, 1), "
                 f"got {up.shape}, {skip.shape}, {input_grad.shape}"
             )
-        # An array of its own: XLA:CPU otherwise fused the up block's depth-to-space transpose,
-        # BN and ReLU into every consumer of `up`, and the backward of its gradient map reads 4
-        # neighbours of each pixel, recomputing them several times per element (measured,
-        # `paper` train step: 256x320 batch 1 -6 %, batch 4 -11 %, 512x640 -6 %).
-        up = materialize(up)
         channels = up.shape[-1]
-        feature_guidance = Conv(channels, (1, 1), name="feature_proj")(gradient_magnitude(up))
-        input_guidance = Conv(channels, (3, 3), name="input_proj")(input_grad)
+        feature_guidance = nn.Conv(channels, (1, 1), name="feature_proj")(gradient_magnitude(up))
+        input_guidance = nn.Conv(channels, (3, 3), name="input_proj")(input_grad)
         mixed = self.alpha * feature_guidance + (1.0 - self.alpha) * input_guidance
-        attention = nn.sigmoid(Conv(channels, (1, 1), name="attention")(nn.relu(mixed)))
+        attention = nn.sigmoid(nn.Conv(channels, (1, 1), name="attention")(nn.relu(mixed)))
         return up * (1.0 + attention), skip * (1.0 + attention)

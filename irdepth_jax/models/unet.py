@@ -1,6 +1,6 @@
 """MTSA-UNet (paper section 3.2): a shared UNet encoder and three task decoders.
 
-    raw (B, H, W[, 1]) -> normalise -> edge-pad to a multiple of 2^stages
+    image (B, H, W[, 1]) in [0, 1] -> edge-pad to a multiple of 2^stages
       encoder: per stage 2 x (3x3 conv, BN, ReLU) -> skip, then 2x2 max-pool; widths cfg.widths
       bottleneck: 2 x (3x3 conv, BN, ReLU) to cfg.bottleneck channels
       3 decoders (recon, seg, gradient), each with one up block per stage, deepest first:
@@ -20,8 +20,6 @@ import jax.numpy as jnp
 
 from irdepth_jax.config import UNetConfig
 from irdepth_jax.imaging.gradients import gradient_magnitude, resize_gradient
-from irdepth_jax.imaging.raw import normalize_raw
-from irdepth_jax.models.conv import Conv, upsample_by_matmul
 from irdepth_jax.models.rgg import RGG
 
 TASKS = ("recon", "seg", "gradient")
@@ -40,8 +38,9 @@ behaviour."""
 def max_pool_2x2(x):
     """2x2 max-pool with stride 2: (B, h, w, C) -> (B, h/2, w/2, C); h and w must be even.
 
-    Same values and gradients (up to ties) as `nn.max_pool(x, (2, 2), strides=(2, 2))`, whose
-    backward pass (select_and_scatter) measured 6x slower on XLA:CPU (256x320x32: 87 ms vs 14 ms).
+    Same values and gradients (up to ties) as `nn.max_pool(x, (2, 2), strides=(2, 2))`, as a
+    reshape and a max, whose backward pass XLA compiles to a plain comparison (nn.max_pool's,
+    select_and_scatter, was several times slower on XLA:CPU).
     """
     b, h, w, c = x.shape
     return x.reshape(b, h // 2, 2, w // 2, 2, c).max(axis=(2, 4))
@@ -58,6 +57,21 @@ def pad_edge(x, pad_h: int, pad_w: int):
     if pad_w:
         x = jnp.concatenate([x, jnp.repeat(x[:, :, -1:], pad_w, axis=2)], axis=2)
     return x
+
+
+def upsample_by_matmul(x, kernel):
+    """A transposed convolution whose stride equals its kernel: each input pixel becomes a k x k
+    block, out[b, k i + p, k j + q, o] = sum_c x[b, i, j, c] kernel[p, q, c, o].
+
+    x: (B, h, w, C_in); kernel: (k, k, C_in, C_out) -> (B, k h, k w, C_out): one matmul and a
+    depth-to-space reshape.
+    """
+    k = kernel.shape[0]
+    b, h, w, c = x.shape
+    features = kernel.shape[-1]
+    y = x.reshape(-1, c) @ kernel.transpose(2, 0, 1, 3).reshape(c, k * k * features)
+    y = y.reshape(b, h, w, k, k, features).transpose(0, 1, 3, 2, 4, 5)
+    return y.reshape(b, k * h, k * w, features)
 
 
 class Upsample2x(nn.Module):
@@ -88,7 +102,7 @@ class DoubleConv(nn.Module):
     @nn.compact
     def __call__(self, x, train: bool):
         for i in range(2):
-            x = Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
+            x = nn.Conv(self.features, (3, 3), use_bias=False, name=f"conv{i}")(x)
             x = nn.BatchNorm(
                 use_running_average=not train,
                 momentum=self.bn_momentum,
@@ -132,7 +146,7 @@ class MTSAUNet(nn.Module):
 
     Attributes:
       cfg: `irdepth_jax.config.UNetConfig` (widths, bottleneck, num_classes, use_rgg, rgg_alpha,
-        bn_momentum, raw_scale).
+        bn_momentum; its raw_scale is the pipeline's, `models.pipeline.unet_input`).
       axis_name: mapped axis over which every BatchNorm averages its batch statistics (under
         pmap / shard_map); None for a single device.
 
@@ -145,13 +159,13 @@ class MTSAUNet(nn.Module):
     axis_name: str | None = None
 
     @nn.compact
-    def __call__(self, raw, train: bool = False):
+    def __call__(self, image, train: bool = False):
         """Runs the three branches.
 
         Args:
-          raw: (B, H, W) or (B, H, W, 1). Integer dtype (uint16 raw 14-bit counts): normalised
-            here with `normalize_raw(raw, cfg.raw_scale)`. Float dtype: taken as an already
-            normalised image in [0, 1] and used as is.
+          image: (B, H, W) or (B, H, W, 1) float, the normalised thermal image in [0, 1]: raw
+            counts are normalised by `models.pipeline.unet_input` (which knows their bit depth
+            and the config's scaling); integer input is refused.
           train: BatchNorm uses batch statistics and updates `batch_stats` (apply with
             mutable=['batch_stats']); otherwise it uses the running averages.
 
@@ -164,20 +178,18 @@ class MTSAUNet(nn.Module):
             input_gradient (B, H, W, 1), GCM of the normalised input.
         """
         cfg = self.cfg
-        if raw.ndim == 3:
-            raw = raw[..., None]
-        if raw.ndim != 4 or raw.shape[-1] != 1:
+        if image.ndim == 3:
+            image = image[..., None]
+        if image.ndim != 4 or image.shape[-1] != 1:
             raise ValueError(
-                f"MTSAUNet: expected raw (B, H, W) or (B, H, W, 1), got shape {raw.shape}"
+                f"MTSAUNet: expected an image (B, H, W) or (B, H, W, 1), got shape {image.shape}"
             )
-        if jnp.issubdtype(raw.dtype, jnp.integer):
-            x = normalize_raw(raw, cfg.raw_scale)
-        elif jnp.issubdtype(raw.dtype, jnp.floating):
-            x = raw.astype(jnp.float32)
-        else:
+        if not jnp.issubdtype(image.dtype, jnp.floating):
             raise ValueError(
-                f"MTSAUNet: expected integer raw counts or a float image, got {raw.dtype}"
+                f"MTSAUNet: expected a float image in [0, 1], got {image.dtype}; normalise raw "
+                "counts with models.pipeline.unet_input (their bit depth is data.raw_bits)"
             )
+        x = image.astype(jnp.float32)
         height, width = x.shape[1:3]
         multiple = 2 ** len(cfg.widths)
         pad_h, pad_w = -height % multiple, -width % multiple
@@ -195,8 +207,8 @@ class MTSAUNet(nn.Module):
         )
 
         if cfg.use_rgg:
-            # Guidance from the input's GCM, divided by its per-image mean: a 14-bit scene spans a
-            # few hundred counts, so the raw GCM is ~1e-3 and would barely move the attention.
+            # Guidance from the input's GCM, divided by its per-image mean: a scene spans a few
+            # hundred counts of 2^14 or 2^16, so the GCM is ~1e-3 and would barely move the attention.
             g = gcm / (jnp.mean(gcm, axis=(1, 2, 3), keepdims=True) + 1e-8)
             guides = [resize_gradient(g, s.shape[1:3]) for s in skips]
         else:
@@ -217,7 +229,7 @@ class MTSAUNet(nn.Module):
             features[task] = d[:, :height, :width]
 
         def head(task: str, channels: int):
-            return Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
+            return nn.Conv(channels, (1, 1), name=MODULE_NAMES[task][1])(features[task])
 
         return {
             "recon": nn.sigmoid(head("recon", 1)),

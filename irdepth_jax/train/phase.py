@@ -26,7 +26,7 @@ from tqdm.auto import tqdm
 from irdepth_jax.config import Config, to_dict
 from irdepth_jax.data.source import BatchStream, device_batch
 from irdepth_jax.errors import Interrupted, RunError
-from irdepth_jax.train.checkpoint import Checkpointer
+from irdepth_jax.runs.checkpoint import Checkpointer
 from irdepth_jax.train.parallel import DataParallel
 from irdepth_jax.train.runlog import RunLog
 from irdepth_jax.train.state import TrainState
@@ -108,7 +108,7 @@ def writing_checkpoint(frame) -> bool:
     a traceback)."""
     while frame is not None:
         module = frame.f_globals.get("__name__", "")
-        if module == "irdepth_jax.train.checkpoint" or module.startswith("orbax."):
+        if module == "irdepth_jax.runs.checkpoint" or module.startswith("orbax."):
             return True
         frame = frame.f_back
     return False

@@ -29,13 +29,8 @@ from irdepth_jax.data.source import (
 from irdepth_jax.errors import RunError
 from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import describe_disk, disk_full
-from irdepth_jax.train.checkpoint import CheckpointError, has_checkpoint, read_meta
-from irdepth_jax.train.phase import Phase, RunOptions, make_parallel, run_phase, steps_for
-from irdepth_jax.train.runlog import RunLog, check_same_data, prepare_workdir, record_data
-from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
-from irdepth_jax.train.steps import stage1_loss_fn, stage2_loss_fn
-from irdepth_jax.train.validate import check_run
-from irdepth_jax.train.variables import (
+from irdepth_jax.runs.checkpoint import CheckpointError, has_checkpoint, read_meta
+from irdepth_jax.runs.variables import (
     STAGE1_STAGES,
     init_depth,
     init_unet,
@@ -43,6 +38,11 @@ from irdepth_jax.train.variables import (
     read_trained_on,
     take_stage1_settings,
 )
+from irdepth_jax.train.phase import Phase, RunOptions, make_parallel, run_phase, steps_for
+from irdepth_jax.train.runlog import RunLog, check_same_data, prepare_workdir, record_data
+from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
+from irdepth_jax.train.steps import stage1_loss_fn, stage2_loss_fn
+from irdepth_jax.train.validate import check_run
 from irdepth_jax.train.workdir_lock import last_checkpoint
 
 

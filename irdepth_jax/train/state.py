@@ -22,6 +22,7 @@ matching regular expression of a rule list, so a new module needs one rule, not 
 from __future__ import annotations
 
 import functools
+import os
 import re
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -31,9 +32,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from irdepth_jax.config import Config
-
-STAGES = ("stage1_i1", "stage1_i2", "stage2")
+from irdepth_jax.config import Config, resolved_raw_bits, to_dict
+from irdepth_jax.runs.checkpoint import Checkpointer, path_to_str
 
 # Parameter path rules (first match wins), after the module names of `models.unet.MTSAUNet`
 # (decoders dec_<task>_up<i>, heads head_<task>) and `models.depth_anything.DepthAnythingV2`
@@ -44,10 +44,6 @@ BACKBONE_PATTERN = r"^pretrained(/|$)"
 
 NO_UPDATE = "no_update"
 """Group of the parameters a phase leaves as they are (``optax.set_to_zero``)."""
-LEGACY_GROUP_NAMES = (("frozen", NO_UPDATE),)
-"""(old, new) group names: the optimizer state keys its per-group states by group
-(``opt_state.inner_states``), so a checkpoint written before a rename holds the old name;
-renamed when it is restored (`train.checkpoint`)."""
 
 Schedule = Callable[[jax.Array], jax.Array]
 
@@ -107,19 +103,6 @@ class TrainState(struct.PyTreeNode):
             state = state.replace(opt_state=train["opt_state"], step=train["step"],
                                   rng=train["rng"])
         return state
-
-
-def path_to_str(path: tuple) -> str:
-    """A `jax.tree_util` key path as ``"a/b/c"``."""
-    parts = []
-    for key in path:
-        for attr in ("key", "name", "idx"):
-            if hasattr(key, attr):
-                parts.append(str(getattr(key, attr)))
-                break
-        else:
-            parts.append(str(key))
-    return "/".join(parts)
 
 
 def label_params(params: Any, rules: Sequence[tuple[str, str]], default: str) -> Any:
@@ -207,3 +190,32 @@ def stage2_optimizer(cfg: Config, total_steps: int
                                default="head")
     transforms = {name: base_optimizer("adamw", fn, s2.weight_decay) for name, fn in lr_fns.items()}
     return optax.multi_transform(transforms, labels), lr_fns
+
+
+def save_model(workdir: str, cfg: Config, unet_vars: dict | None, da_params: Any,
+               segmentation: dict | None = None) -> str:
+    """Writes a Stage II checkpoint that `runs.variables.load_model` (so eval, predict, export)
+    reads: e.g. a Stage I model with released Depth Anything V2 weights, or untrained weights
+    for a benchmark.
+
+    Args:
+      workdir: a new run directory (its ``checkpoints/stage2``).
+      cfg: the config the variables belong to (`data.raw_bits` 14 or 16).
+      unet_vars: Stage I ``{'params', 'batch_stats'}`` (None for a baseline without Stage I).
+      da_params: Depth Anything V2 params.
+      segmentation: what the segmentation branch was trained on (recorded in the meta).
+    Returns:
+      the checkpoint directory.
+    """
+    resolved_raw_bits(cfg)
+    tx, lr_fns = stage2_optimizer(cfg, 1)
+    state = TrainState.create(da_params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
+    directory = os.path.join(workdir, "checkpoints", "stage2")
+    ckpt = Checkpointer(directory, "stage2")
+    try:
+        ckpt.save(0, state, {"config": to_dict(cfg), "segmentation": segmentation},
+                  frozen=None if unet_vars is None else {"unet": unet_vars}, force=True)
+        ckpt.wait()
+    finally:
+        ckpt.close()
+    return directory

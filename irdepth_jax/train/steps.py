@@ -30,7 +30,8 @@ calls and keep the partial sum in the optimizer state.)
 A loss function has the signature
 ``loss_fn(params, batch_stats, frozen, batch, rng) -> (loss, (metrics, new_batch_stats))``
 with `batch` the per-device (micro-)batch, `frozen` non-differentiated variables (the frozen
-Stage I model in Stage II) and `metrics` a dict of scalars.
+Stage I model in Stage II) and `metrics` a dict of scalars. Both stage losses trace their models
+inside `xla_cpu.training_layers()`, the one choice of how the layers are computed on a CPU.
 """
 
 from __future__ import annotations
@@ -46,9 +47,10 @@ from jax import lax
 from irdepth_jax.config import IGNORE_LABEL, Config
 from irdepth_jax.imaging.gradients import gradient_magnitude
 from irdepth_jax.losses import cross_entropy_loss, multitask_loss, reconstruction_loss, silog_loss, sky_loss
-from irdepth_jax.models.pipeline import run_pipeline, unet_input
+from irdepth_jax.models.pipeline import pipeline_outputs, unet_input
 from irdepth_jax.models.unet import MTSAUNet
 from irdepth_jax.train.state import TrainState
+from irdepth_jax.xla_cpu import training_layers
 
 LossFn = Callable[[Any, Any, Any, Any, jax.Array], tuple[jax.Array, tuple[dict, Any]]]
 
@@ -179,8 +181,9 @@ def stage1_loss_fn(cfg: Config, phase: str, axis_name: str | None = None) -> Los
 
     def loss_fn(params, batch_stats, frozen, batch, rng):
         x = unet_input(batch["raw14"], cfg, batch.get("brightness"))
-        out, updates = model.apply({"params": params, "batch_stats": batch_stats}, x,
-                                   train=True, mutable=["batch_stats"])
+        with training_layers():
+            out, updates = model.apply({"params": params, "batch_stats": batch_stats}, x,
+                                       train=True, mutable=["batch_stats"])
         recon_t, sat_t = stage1_targets(batch["ir8"], s1.grad_target_scale)
         terms = {"recon": reconstruction_loss(out["recon"], recon_t, kind=s1.recon_loss),
                  "loss_gradient": reconstruction_loss(out["saturation"], sat_t,
@@ -217,8 +220,9 @@ def stage2_loss_fn(cfg: Config, ref_depth: float, axis_name: str | None = None) 
 
     def loss_fn(params, batch_stats, frozen, batch, rng):
         unet = None if frozen is None else frozen.get("unet")
-        out = run_pipeline(unet, params, batch.get("raw14"), cfg, image=batch.get("image"),
-                           brightness=batch.get("brightness"))
+        with training_layers():  # the pipeline traced here, not a cached trace of its jit
+            out = pipeline_outputs(unet, params, batch.get("raw14"), cfg, image=batch.get("image"),
+                                   brightness=batch.get("brightness"))
         pred, sky = out["depth"], out["sky"]
         gt = batch["depth"].astype(jnp.float32)
         valid = batch["valid"].astype(bool) & (gt >= d.min_depth) & (gt <= d.max_depth)

@@ -16,7 +16,7 @@ step: restore picks the last finalised one (and the manager removes the leftover
 A save that cannot fit on the disk is refused before it starts (OSError ENOSPC), and a finished
 run whose weights hold NaN / inf is refused when it is loaded (`restore_items`).
 
-Renamed keys (`train.legacy_names`: the gradient branch's modules, an optimizer group) are
+Renamed keys (`runs.legacy_names`: the gradient branch's modules, an optimizer group) are
 mapped on restore, so checkpoints written under the old names still load and resume.
 """
 
@@ -35,8 +35,10 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
-from irdepth_jax.train.legacy_names import from_legacy, has_legacy_keys, to_legacy
-from irdepth_jax.train.state import STAGES, TrainState, path_to_str
+from irdepth_jax.runs.legacy_names import from_legacy, has_legacy_keys, to_legacy
+
+STAGES = ("stage1_i1", "stage1_i2", "stage2")
+"""The training phases a run directory holds checkpoints of (``checkpoints/<stage>``)."""
 
 
 class CheckpointError(ValueError):
@@ -106,7 +108,7 @@ class Checkpointer:
     def all_steps(self) -> list[int]:
         return list(self.manager.all_steps())
 
-    def save(self, step: int, state: TrainState, meta: Mapping[str, Any], frozen: Any = None,
+    def save(self, step: int, state: Any, meta: Mapping[str, Any], frozen: Any = None,
              force: bool = False) -> bool:
         """Saves `state` (host or replicated arrays) and `frozen` at `step` if due (or `force`).
 
@@ -151,8 +153,8 @@ class Checkpointer:
             return dict(self.manager.restore(
                 step, args=ocp.args.Composite(meta=ocp.args.JsonRestore()))["meta"])
 
-    def restore(self, template: TrainState, step: int | None = None, model_only: bool = False
-                ) -> tuple[TrainState, dict]:
+    def restore(self, template: Any, step: int | None = None, model_only: bool = False
+                ) -> tuple[Any, dict]:
         """Restores a training state into the structure, shapes and shardings of `template`.
 
         Args:
@@ -195,7 +197,7 @@ class Checkpointer:
                                   f"{' or '.join(map(repr, stages))}")
         with _readable(f"{self.directory} step {step}"):
             stored = self.manager.item_metadata(step)
-        legacy = set()  # items stored under old key names (`train.legacy_names`)
+        legacy = set()  # items stored under old key names (`runs.legacy_names`)
         for name, template in templates.items():
             if stored.get(name) is None:
                 raise CheckpointError(f"checkpoint {self.directory} step {step} has no {name!r}")
@@ -368,3 +370,16 @@ def _jsonable(value: Any) -> Any:
     if isinstance(value, np.ndarray):
         return value.tolist()
     return value
+
+
+def path_to_str(path: tuple) -> str:
+    """A `jax.tree_util` key path as ``"a/b/c"``."""
+    parts = []
+    for key in path:
+        for attr in ("key", "name", "idx"):
+            if hasattr(key, attr):
+                parts.append(str(getattr(key, attr)))
+                break
+        else:
+            parts.append(str(key))
+    return "/".join(parts)

@@ -1,18 +1,19 @@
 """A native CPU kernel for the kernel gradient of stride-1 convolutions (`native_conv.cc`),
-built on first use with the machine's C++ compiler (-O3 -march=native) and called through
-XLA's FFI as a custom call.
+built with the machine's C++ compiler (-O3 -march=native) and called through XLA's FFI as a
+custom call. Opt-in: only a run that asks for it (`irdepth_jax.xla_cpu.NATIVE_ENV`) builds or
+loads it.
 
 XLA:CPU has no kernel-gradient convolution of its own that keeps up with oneDNN: `conv.py`
-computes it as im2col matmuls, which copy each input window twice per block (XLA does not fuse
-a concatenate of 9 slices) and run the skinny (k*k*C_in, pixels) @ (pixels, C_out) products
-at about half the matmul peak. The native kernel reads the input in place: register tiles of
-input x output channels accumulate each output row with fused multiply-adds.
+computes it as im2col matmuls, which copy each input window twice per block and run the skinny
+(k*k*C_in, pixels) @ (pixels, C_out) products at about half the matmul peak. The native kernel
+reads the input in place: register tiles of input x output channels accumulate each output row
+with fused multiply-adds.
 
 The built library is cached under ``$XDG_CACHE_HOME/irdepth_jax/native`` (default
 ``~/.cache``), keyed by the source, the compiler, jaxlib and the CPU's model and flags (a
--march=native build runs only on the CPU it was made for). With no compiler, a failed build or
-``IRDEPTH_NATIVE_KERNELS=0``, `available()` is False (with a warning for a failed build) and
-`conv.kernel_gradient` keeps its XLA ways.
+-march=native build runs only on the CPU it was made for). Each build writes a temporary file
+of its own and renames it into place, so concurrent builders (threads or processes) never write
+the same file.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import re
 import shutil
 import subprocess
 import sys
-import warnings
+import tempfile
 from pathlib import Path
 
 import jax
@@ -36,9 +37,6 @@ import jaxlib
 import numpy as np
 
 SOURCE = Path(__file__).with_name("native_conv.cc")
-DISABLE_ENV = "IRDEPTH_NATIVE_KERNELS"
-"""Set to 0 to never build or use the native kernel."""
-
 TARGET = "irdepth_conv_kernel_gradient"
 FLAGS = ("-O3", "-march=native", "-std=c++17", "-shared", "-fPIC")
 
@@ -71,37 +69,48 @@ def _build(compiler: str) -> Path:
     if target.exists():
         return target
     target.parent.mkdir(parents=True, exist_ok=True)
-    partial = target.with_suffix(f".{os.getpid()}.tmp")
-    command = [compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(SOURCE), "-o", str(partial)]
-    result = subprocess.run(command, capture_output=True, text=True, timeout=600)
-    if result.returncode != 0:
-        partial.unlink(missing_ok=True)
-        raise RuntimeError(f"{' '.join(command)} exited {result.returncode}: {result.stderr.strip()[-2000:]}")
-    os.replace(partial, target)  # atomic: concurrent builders (test workers) each write their own
+    handle, partial = tempfile.mkstemp(prefix=f"{target.stem}.", suffix=".tmp", dir=target.parent)
+    os.close(handle)
+    command = [compiler, *FLAGS, "-I", jax.ffi.include_dir(), str(SOURCE), "-o", partial]
+    try:
+        result = subprocess.run(command, capture_output=True, text=True, timeout=600)
+        if result.returncode != 0:
+            raise RuntimeError(f"{' '.join(command)} exited {result.returncode}: {result.stderr.strip()[-2000:]}")
+        os.replace(partial, target)  # atomic; every builder wrote a file of its own
+    finally:
+        if os.path.exists(partial):
+            os.unlink(partial)
     return target
 
 
 @functools.cache
-def _library() -> ctypes.CDLL | None:
-    if os.environ.get(DISABLE_ENV) == "0" or not sys.platform.startswith(("linux", "darwin")):
-        return None
+def _loaded() -> tuple[ctypes.CDLL | None, str]:
+    """(the built and registered library, '') or (None, why not)."""
+    if not sys.platform.startswith(("linux", "darwin")):
+        return None, f"no build recipe for {sys.platform}"
     compiler = _compiler()
     if compiler is None:
-        return None
+        return None, "no C++ compiler found (set CXX)"
     try:
         library = ctypes.CDLL(str(_build(compiler)))
         jax.ffi.register_ffi_target(TARGET, jax.ffi.pycapsule(library.IrdepthConvKernelGradient), platform="cpu")
     except (OSError, RuntimeError, subprocess.SubprocessError) as e:
-        warnings.warn(f"irdepth_jax: the native convolution kernel could not be built or loaded, so XLA's "
-                      f"kernel gradients are used ({e}); set {DISABLE_ENV}=0 to skip the attempt",
-                      RuntimeWarning, stacklevel=2)
-        return None
-    return library
+        return None, f"the build or load failed: {e}"
+    return library, ""
+
+
+def _library() -> ctypes.CDLL | None:
+    return _loaded()[0]
 
 
 def available() -> bool:
     """Whether the native kernel is built and registered (builds it on the first call)."""
     return _library() is not None
+
+
+def unavailable_reason() -> str:
+    """Why `available()` is False ('' when it is True)."""
+    return _loaded()[1]
 
 
 def tile_channels() -> int:
@@ -134,8 +143,7 @@ def kernel_gradient_native(x, g, kernel_size: tuple[int, int], pads):
     float32, C_out a multiple of `tile_channels()`; pads ((top, bottom), (left, right)) ->
     (kh, kw, C_in, C_out) float32. Needs `available()`; CPU only."""
     if not available():
-        raise RuntimeError(f"the native convolution kernel is not available (no C++ compiler, a failed build, "
-                           f"or {DISABLE_ENV}=0)")
+        raise RuntimeError(f"the native convolution kernel is not available: {unavailable_reason()}")
     (top, _), (left, _) = pads
     out = jax.ShapeDtypeStruct((*kernel_size, x.shape[-1], g.shape[-1]), jnp.float32)
     return jax.ffi.ffi_call(TARGET, out, vmap_method="sequential")(x, g, top=np.int64(top), left=np.int64(left))

@@ -1,5 +1,5 @@
 """Keys renamed since checkpoints were written: old checkpoints hold the old names, which
-`train.checkpoint.Checkpointer.restore_items` maps (`has_legacy_keys` on the stored tree, then
+`runs.checkpoint.Checkpointer.restore_items` maps (`has_legacy_keys` on the stored tree, then
 restore into `to_legacy(template)` and return `from_legacy(restored)`)."""
 
 from __future__ import annotations
@@ -7,7 +7,10 @@ from __future__ import annotations
 import re
 from typing import Any
 
-from irdepth_jax.train.state import LEGACY_GROUP_NAMES
+LEGACY_GROUP_NAMES = (("frozen", "no_update"),)
+"""(old, new) optimizer group names (new: `train.state.NO_UPDATE`): the optimizer state keys
+its per-group states by group (``opt_state.inner_states``), so a checkpoint written before a
+rename holds the old name; renamed when it is restored."""
 
 LEGACY_KEYS: tuple[tuple[str, str, str | None], ...] = (
     *((old, new, "inner_states") for old, new in LEGACY_GROUP_NAMES),

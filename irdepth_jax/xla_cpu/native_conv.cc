@@ -1,5 +1,5 @@
 // Kernel gradient of a stride-1 NHWC convolution on CPU, as an XLA FFI custom call
-// (irdepth_jax/models/native_conv.py builds this file with the machine's C++ compiler,
+// (irdepth_jax/xla_cpu/native_conv.py builds this file with the machine's C++ compiler,
 // -O3 -march=native, and registers it).
 //
 //   dw[p, q, c, d] = sum over b, i, j of x[b, i + p - top, j + q - left, c] * g[b, i, j, d]

@@ -1,86 +1,56 @@
-"""Convolutions for XLA:CPU: `nn.Conv` with the same parameters, init and forward, and a
-weight gradient computed as matmuls.
+"""Convolution and dense-layer gradients for XLA:CPU: `lax.conv_general_dilated` and
+`lax.dot_general` with the same values, whose kernel gradients are computed as matmuls.
 
 XLA:CPU differentiates a convolution's kernel as one convolution whose window is the whole
-image (batch as the feature axis), after transposing both operands to that layout; its
-library kernels run it 3-5x slower than the forward pass (measured, 2 x 518 x 518 x 32 -> 32
-channels, 3x3: forward 62 ms, kernel gradient 330 ms; PyTorch's oneDNN about 4x faster). Here
-the kernel gradient of a stride-1 k x k convolution is an im2col matmul, (k*k*C_in, pixels) @
-(pixels, C_out): the k*k shifted input windows concatenated along the channels. Large layers
-do it in a loop over blocks of output rows whose im2col stays in cache, summing the blocks'
-products (110 ms for the layer above); small ones build the whole im2col; deep ones with few
-pixels and many channels sum one matmul per tap instead; wide 3x3 layers (C_in x C_out >= 64 x
-128) use Winograd's F(3x3, 2x2), 2.25x fewer multiply-adds (`kernel_gradient` says when).
-Where the machine's C++ compiler could build it, the other float32 layers take a native kernel
-instead (`native_conv`: register tiles, no im2col; 2-2.5x faster than the row blocks on the
-full-resolution layers, at 155-176 GFLOP/s).
+image, which its library kernels run several times slower than the forward pass
+(docs/benchmarks.md has the figures). Here the kernel gradient of a stride-1 k x k convolution
+is an im2col matmul, (k*k*C_in, pixels) @ (pixels, C_out): the k*k shifted input windows
+concatenated along the channels. Large layers do it in a loop over blocks of output rows whose
+im2col stays in cache, summing the blocks' products; small ones build the whole im2col; deep
+ones with few pixels and many channels sum one matmul per tap instead; wide 3x3 layers use
+Winograd's F(3x3, 2x2), 2.25x fewer multiply-adds (`kernel_gradient_method` says when). With
+``native=True`` the float32 layers take the C++ kernel of `native_conv` instead.
 
-A 1x1 convolution is a matmul over the channel axis (faster than XLA:CPU's convolution in both
-directions), its kernel gradient a matmul with the pixels minor on the left (`_pointwise_conv`).
-The input gradient is a convolution with the flipped kernel (`input_gradient`). Off CPU (GPU /
-TPU, whose convolution libraries are fast both ways) `conv_general_dilated` is
-`lax.conv_general_dilated`.
+A 1x1 convolution is a matmul over the channel axis, its kernel gradient a matmul with the
+pixels minor on the left (`_pointwise_conv`). The input gradient is a convolution with the
+flipped kernel (`input_gradient`). Only `irdepth_jax.xla_cpu.training_layers` installs these,
+and only on a CPU backend.
 """
 
 from __future__ import annotations
 
 import functools
 
-import flax.linen as nn
 import jax
 import jax.numpy as jnp
 from jax import lax
 
-from irdepth_jax.models import native_conv
+from irdepth_jax.xla_cpu import native_conv
 
 BLOCK_PIXELS = 2048
 """Output pixels (batch x rows x width) per block of the kernel-gradient loop: its im2col block
-(k*k*C_in x BLOCK_PIXELS floats, 2.4 MB for 3x3 x 32 channels) stays in cache. Measured on 2-core
-x86 CPUs for 1-4 images of 64x80 to 518x518 with 32-256 channels: 1000-3000 pixels per block
-are within 10 % of each other (except 3072 for 256 -> 128 channels at 4 x 64 x 80, 20 % slower;
-the `paper` UNet's train step at 256x320 on an AVX-512 Xeon: 1.72-1.82 s at 2048-4096, 1.89 s at
-8192), single rows of 300 pixels 1.5-2x slower."""
+(k*k*C_in x BLOCK_PIXELS floats, 2.4 MB for 3x3 x 32 channels) stays in cache; 1000-3000 were
+within 10 % of each other (docs/benchmarks.md)."""
 
 MIN_LOOP_PIXELS = 16384
 """Below this many output pixels (batch x height x width) the kernel gradient is not the loop,
 which would have few blocks and whose set-up would not pay."""
 
 IM2COL_BYTES = 16 * 2**20
-"""Largest float32 im2col (kh*kw*C_in x output pixels) that the kernel gradient builds whole
-(measured, 3x3: 1 -> 32 channels at 256x320, 2.5 ms vs 5.3 ms in the loop; 512 -> 512 at 16x20,
-7.8 ms vs XLA's 12.0 ms and torch's 7.0 ms)."""
+"""Largest float32 im2col (kh*kw*C_in x output pixels) that the kernel gradient builds whole."""
 
 CHANNELS_FIRST_MAX_OUT = 64
 """The loop lays each block's im2col out channels first, (k*k*C_in, pixels), when the layer has
 at most this many output channels: XLA:CPU's matmul with the contraction axis minor on the left
-ran 3-4x faster than with it leading (81920 x 288 x 32: 12 vs 42 ms), worth the transpose of
-the input for narrow layers (1 x 256 x 320, 64 -> 32: 53 vs 68 ms), not for wide ones (4 x 64
-x 80, 256 -> 128: 111 vs 94 ms). Rechecked 2026-12-04 on a 2-core AVX-512 EPYC: a plain matmul
-contracting the leading axis now runs 15-25 % faster than transposing first, but the row-block
-loop is still faster channels first (1 x 256 x 320, 64 -> 32: 48 vs 76 ms)."""
+ran faster, worth the transpose of the input for narrow layers, not for wide ones."""
 
 WINOGRAD_MIN_CHANNELS = 64 * 128
 """3x3 layers with at least this C_in x C_out take the Winograd kernel gradient: its 2.25x
 fewer multiply-adds pay for its transforms (additions, proportional to C_in + C_out) only on
-wide layers. Measured on a 2-core AVX-512 EPYC, the `paper` UNet's layers at 256x320, ms
-Winograd / before, batch 1 (batch 4): 64x80 256 -> 128 channels 18 / 39 (147 / 253), 128 ->
-128 9.3 / 11.4 (79 / 135); 32x40 512 -> 256 11.6 / 19.1 (152 / 213); 128x160 128 -> 64 42 / 45
-(117 / 146); 64x80 64 -> 128 7.1 / 9.3; but 128x160 64 -> 64 19 / 16 (74 / 76) and 256x320 32
--> 32 42 / 35 (109 / 98)."""
-
-USE_NATIVE = True
-"""Whether `kernel_gradient` may take the native kernel (`native_conv`, when it is available).
-Measured on a 2-core AVX-512 EPYC against the row blocks, ms: 4 x 256 x 320, 64 -> 32 channels,
-71 vs 168; 1 x 512 x 640, 32 -> 32, 38 vs 90; 4 x 128 x 160, 64 -> 64, 36 vs 61; the 1-channel
-input layer 6.5 vs 8.2; but Winograd's fewer multiply-adds stay ahead on the wide layers (4 x 64
-x 80, 128 -> 128: 29 vs 32; 4 x 16 x 20, 256 -> 512: 10.5 vs 22). Tests of the XLA ways and
-A/B benchmarks switch it off."""
+wide layers."""
 
 WINOGRAD_OVER_NATIVE_MIN_CHANNELS = 128 * 128
-"""Where the native kernel is available, 3x3 layers take Winograd only from this C_in x C_out
-up. Measured (2-core AVX-512 EPYC), ms Winograd / native: 4 x 128 x 160, 128 -> 64 channels,
-91 / 66; 2 x 74 x 74, 192 -> 64, 17 / 13; 4 x 64 x 80, 64 -> 128, 17 / 17; 1 x 64 x 80, 128
--> 128, 7.6 / 8.7; 4 x 64 x 80, 128 -> 128, 29 / 32; 1 x 32 x 40, 256 -> 256, 5.1 / 8.5."""
+"""With the native kernel, 3x3 layers take Winograd only from this C_in x C_out up."""
 
 _NHWC = ("NHWC", "HWIO", "NHWC")
 
@@ -94,10 +64,10 @@ def _is_nhwc(dimension_numbers) -> bool:
 
 
 def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, rhs_dilation=None,
-                         dimension_numbers=None, feature_group_count=1, precision=None):
+                         dimension_numbers=None, feature_group_count=1, precision=None, *, native: bool = False):
     """`lax.conv_general_dilated` with the same arguments (what `nn.Conv` calls), computed as
-    the module docstring says for 2-D NHWC / HWIO convolutions on CPU; any other case is
-    `lax.conv_general_dilated` itself.
+    the module docstring says for 2-D NHWC / HWIO convolutions; any other case is
+    `lax.conv_general_dilated` itself. `native`: whether kernel gradients may take `native_conv`.
 
     lhs: (B, H, W, C_in); rhs: (kh, kw, C_in, C_out) -> (B, H', W', C_out).
     """
@@ -105,8 +75,7 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
                   dimension_numbers=dimension_numbers, feature_group_count=feature_group_count,
                   precision=precision)
     plain = (lhs.ndim != 4 or not _is_nhwc(dimension_numbers) or feature_group_count != 1
-             or any(d != 1 for d in (lhs_dilation or ()) + (rhs_dilation or ()))
-             or jax.default_backend() != "cpu")
+             or any(d != 1 for d in (lhs_dilation or ()) + (rhs_dilation or ())))
     if plain:
         return lax.conv_general_dilated(lhs, rhs, window_strides, padding, **kwargs)
     kh, kw = rhs.shape[:2]
@@ -114,35 +83,32 @@ def conv_general_dilated(lhs, rhs, window_strides, padding, lhs_dilation=None, r
         padding = lax.padtype_to_pads(lhs.shape[1:3], (kh, kw), window_strides, padding)
     pads = tuple(tuple(p) for p in padding)
     if (kh, kw) == (1, 1) and tuple(window_strides) == (1, 1) and pads == ((0, 0), (0, 0)):
-        return _pointwise_conv(lhs, rhs[0, 0], precision)
+        return _pointwise_conv(lhs, rhs[0, 0], precision, native)
     if tuple(window_strides) != (1, 1):
         return lax.conv_general_dilated(lhs, rhs, window_strides, padding, **kwargs)
-    return _conv_stride1(lhs, rhs, pads, precision)
+    return _conv_stride1(lhs, rhs, pads, precision, native)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2,))
-def _pointwise_conv(x, kernel, precision):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
+def _pointwise_conv(x, kernel, precision, native):
     """A matmul over the last axis, (..., C_in) @ (C_in, C_out) -> (..., C_out): a 1x1
     convolution, or a dense layer (`dot_general`). Its kernel gradient contracts the pixels
     (tokens) with x laid out channels first, made an array of its own (`materialize`): XLA:CPU's
-    version transposed x inside a fusion with x's producers (RGG's gradient map, 29 ms at 256 x
-    320 x 32) and contracted the leading axes (3-4x slower); the `paper` UNet's train step at
-    256x320 went 1.64 -> 1.52 s (interleaved pair). In the ViT, XLA:CPU left that matmul to
-    Eigen, outside YNNPACK (ViT-S at 518x518, batch 2: the 48 weight gradients 1.6 s of a 5 s
-    train step, 65-75 GFLOP/s)."""
+    own transposed x inside a fusion with x's producers and contracted the leading axes, several
+    times slower."""
     return jnp.einsum("...c,cd->...d", x, kernel, precision=precision)
 
 
-def _pointwise_conv_fwd(x, kernel, precision):
-    return _pointwise_conv(x, kernel, precision), (x, kernel)
+def _pointwise_conv_fwd(x, kernel, precision, native):
+    return _pointwise_conv(x, kernel, precision, native), (x, kernel)
 
 
-def _pointwise_conv_bwd(precision, residuals, g):
+def _pointwise_conv_bwd(precision, native, residuals, g):
     x, kernel = residuals
     dx = jnp.einsum("...d,cd->...c", g, kernel, precision=precision)
-    # images (not the ViT's tokens): the native kernel reads x in place, no transposed copy
-    # (4 x 256 x 320, 32 -> 32 channels: 12 vs 20 ms; tokens, one long row: 7x slower)
-    if x.ndim == 4 and kernel_gradient_method(x.shape, g.shape, (1, 1), jnp.result_type(x, g)) == "native":
+    # images (not the ViT's tokens, one long row, where it is slower): the native kernel reads x
+    # in place, no transposed copy
+    if x.ndim == 4 and kernel_gradient_method(x.shape, g.shape, (1, 1), jnp.result_type(x, g), native) == "native":
         dkernel = native_conv.kernel_gradient_native(x, g, (1, 1), ((0, 0), (0, 0)))[0, 0]
         return dx, dkernel.astype(kernel.dtype)
     x_t = materialize(x.reshape(-1, x.shape[-1]).T)
@@ -154,23 +120,17 @@ def _pointwise_conv_bwd(precision, residuals, g):
 _pointwise_conv.defvjp(_pointwise_conv_fwd, _pointwise_conv_bwd)
 
 
-def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None):
-    """`lax.dot_general` for `flax.linen.Dense`: on CPU, its contraction of lhs's last axis with
-    a 2-D kernel is `_pointwise_conv` (the kernel gradient above); anything else, and any other
-    backend, is `lax.dot_general` itself."""
-    if (jax.default_backend() == "cpu" and rhs.ndim == 2 and preferred_element_type is None
+def dot_general(lhs, rhs, dimension_numbers, precision=None, preferred_element_type=None, *,
+                native: bool = False):
+    """`lax.dot_general` for `flax.linen.Dense`: its contraction of lhs's last axis with a 2-D
+    kernel is `_pointwise_conv` (the kernel gradient above); anything else is `lax.dot_general`
+    itself."""
+    if (rhs.ndim == 2 and preferred_element_type is None
             and tuple(map(tuple, dimension_numbers[0])) == ((lhs.ndim - 1,), (0,))
             and not any(dimension_numbers[1])):
-        return _pointwise_conv(lhs, rhs, precision)
+        return _pointwise_conv(lhs, rhs, precision, native)
     return lax.dot_general(lhs, rhs, dimension_numbers, precision=precision,
                            preferred_element_type=preferred_element_type)
-
-
-class Dense(nn.Dense):
-    """`flax.linen.Dense` (same attributes, parameters and initialisation) computed by
-    `dot_general` above."""
-
-    dot_general: object = staticmethod(dot_general)
 
 
 def _plain_conv(x, kernel, pads, precision):
@@ -178,27 +138,26 @@ def _plain_conv(x, kernel, pads, precision):
                                     precision=precision)
 
 
-@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3))
-def _conv_stride1(x, kernel, pads, precision):
+@functools.partial(jax.custom_vjp, nondiff_argnums=(2, 3, 4))
+def _conv_stride1(x, kernel, pads, precision, native):
     return _plain_conv(x, kernel, pads, precision)
 
 
-def _conv_stride1_fwd(x, kernel, pads, precision):
+def _conv_stride1_fwd(x, kernel, pads, precision, native):
     return _plain_conv(x, kernel, pads, precision), (x, kernel)
 
 
-def _conv_stride1_bwd(pads, precision, residuals, g):
+def _conv_stride1_bwd(pads, precision, native, residuals, g):
     x, kernel = residuals
-    dkernel = kernel_gradient(x, g, kernel.shape[:2], pads).astype(kernel.dtype)
+    dkernel = kernel_gradient(x, g, kernel.shape[:2], pads, native=native).astype(kernel.dtype)
     return input_gradient(g, kernel, pads, precision), dkernel
 
 
 def input_gradient(g, kernel, pads, precision=None):
     """Gradient of a stride-1 convolution's input: (B, H', W', C_out) output gradient and its
     (kh, kw, C_in, C_out) kernel -> (B, H, W, C_in), the convolution of g with the kernel flipped
-    in space and transposed in its channels: XLA's own gradient of the convolution measured up to
-    30 % slower (1 x 256 x 320, 32 -> 32 channels: 12.4 vs 8.7 ms). Paddings over kh - 1 (the
-    output smaller than the padding) are XLA's own."""
+    in space and transposed in its channels (XLA's own gradient of the convolution was slower).
+    Paddings over kh - 1 (the output smaller than the padding) are XLA's own."""
     kh, kw = kernel.shape[:2]
     (top, bottom), (left, right) = pads
     if max(top, bottom) > kh - 1 or max(left, right) > kw - 1:
@@ -213,12 +172,13 @@ def input_gradient(g, kernel, pads, precision=None):
 _conv_stride1.defvjp(_conv_stride1_fwd, _conv_stride1_bwd)
 
 
-def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int = BLOCK_PIXELS):
+def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int = BLOCK_PIXELS, *,
+                    native: bool = False):
     """Gradient of a stride-1 convolution's kernel, by whichever of the five ways below was the
     fastest for the layer's size on XLA:CPU (`experiments/bench_conv_grad.py`): Winograd's
     F(3x3, 2x2) for wide 3x3 layers (`WINOGRAD_MIN_CHANNELS`, or
     `WINOGRAD_OVER_NATIVE_MIN_CHANNELS` where the native kernel would serve), else the native kernel for
-    float32 layers whose output channels fit its tiles (`USE_NATIVE`, `native_conv`), else one
+    float32 layers whose output channels fit its tiles (with `native`, `native_conv`), else one
     channels-first im2col matmul when its im2col is at most `IM2COL_BYTES`, else a sum of one
     matmul per kernel tap below `MIN_LOOP_PIXELS` output pixels, else the row-block loop.
 
@@ -228,11 +188,12 @@ def kernel_gradient(x, g, kernel_size: tuple[int, int], pads, block_pixels: int 
       kernel_size: (kh, kw).
       pads: ((top, bottom), (left, right)) zero padding of x.
       block_pixels: output pixels per block of the loop (rounded to whole rows, at least one).
+      native: whether the native kernel may serve (it must be `native_conv.available()`).
     Returns:
       (kh, kw, C_in, C_out) float32 (float64 for float64 operands): sum over b, i, j of
       x_pad[b, i + p, j + q, :] outer g[b, i, j, :].
     """
-    method = kernel_gradient_method(x.shape, g.shape, kernel_size, jnp.result_type(x, g))
+    method = kernel_gradient_method(x.shape, g.shape, kernel_size, jnp.result_type(x, g), native)
     if method == "winograd":
         return kernel_gradient_winograd(x, g, pads, block_pixels)
     if method == "native":
@@ -250,12 +211,12 @@ def _accumulator(x, g):
     return jnp.promote_types(jnp.promote_types(x.dtype, g.dtype), jnp.float32)
 
 
-def kernel_gradient_method(x_shape, g_shape, kernel_size, dtype=jnp.float32) -> str:
+def kernel_gradient_method(x_shape, g_shape, kernel_size, dtype=jnp.float32, native: bool = False) -> str:
     """Which way `kernel_gradient` computes a layer's: 'winograd', 'native', 'im2col', 'by_tap'
     or 'row_blocks'. x_shape (B, H, W, C_in), g_shape (B, H', W', C_out), kernel_size (kh, kw),
-    dtype the operands' (the native kernel is float32, on CPU)."""
-    native = (USE_NATIVE and jnp.dtype(dtype) == jnp.float32 and jax.default_backend() == "cpu"
-              and native_conv.available() and g_shape[-1] % native_conv.tile_channels() == 0)
+    dtype the operands' (the native kernel is float32), native whether it may serve."""
+    native = (native and jnp.dtype(dtype) == jnp.float32 and native_conv.available()
+              and g_shape[-1] % native_conv.tile_channels() == 0)
     wide = WINOGRAD_OVER_NATIVE_MIN_CHANNELS if native else WINOGRAD_MIN_CHANNELS
     if tuple(kernel_size) == (3, 3) and x_shape[-1] * g_shape[-1] >= wide:
         return "winograd"
@@ -272,18 +233,15 @@ def materialize(x):
     conditional on one of its values (both branches return x; a NaN there makes all of it NaN,
     an unusable value anyway). XLA:CPU fuses elementwise producers into each consumer,
     recomputing them there, and removes `lax.optimization_barrier` before fusion; a
-    conditional's operand it must compute whole. Elsewhere (a GPU conditional waits for its
-    predicate on the host) x + 0 * x[0], which keeps the dependence but not the array."""
+    conditional's operand it must compute whole (XLA:CPU only: a GPU conditional waits for its
+    predicate on the host)."""
     first = x[(0,) * x.ndim]
-    if jax.default_backend() != "cpu":
-        return x + first * 0
     return lax.cond(first == first, lambda x: x, lambda x: x + first * 0, x)
 
 
 def _channels_first(x, pads):
     """(B, H, W, C) -> (C, B, H + pads, W + pads), zero padded. The transpose is made an array
-    before the padding: fused, the two ran 2-3x slower than apart (1 x 256 x 320 x 64: 18 vs
-    7.6 ms)."""
+    before the padding: fused, the two ran 2-3x slower than apart."""
     return jnp.pad(materialize(x.transpose(3, 0, 1, 2)), ((0, 0), (0, 0)) + tuple(pads))
 
 
@@ -298,7 +256,7 @@ def _channels_first_taps(x, out_shape, kernel_size, pads):
 def kernel_gradient_im2col(x, g, kernel_size, pads):
     """`kernel_gradient` as one matmul, (kh*kw*C_in, B*H'*W') @ (B*H'*W', C_out). The im2col is
     built channels first: XLA:CPU's matmul contracting the leading axis of both operands (the
-    pixel-major layout) ran 3-5x slower than with the pixels minor on the left."""
+    pixel-major layout) ran slower than with the pixels minor on the left."""
     kh, kw = kernel_size
     patches = jnp.concatenate(_channels_first_taps(x, g.shape[1:3], kernel_size, pads), axis=0)
     total = jnp.einsum("kbhw,bhwd->kd", patches, g, preferred_element_type=_accumulator(x, g))
@@ -374,7 +332,7 @@ def kernel_gradient_winograd(x, g, pads, block_pixels: int = BLOCK_PIXELS):
     padding to whole blocks stays small). Input columns are split even / odd once beforehand,
     so that the patches' column offsets are contiguous slices. Each 16-way transform is written
     as 4 stacks of 4: XLA:CPU fuses a concatenate of at most 8 operands, and made each of 16 a
-    fusion of its own (measured: 34 vs 8 fusions a block). Transforms in float32 (float64 for
+    fusion of its own. Transforms in float32 (float64 for
     float64 operands); the result differs from the direct sum by rounding (about 1e-6 of its
     largest value).
 
@@ -410,47 +368,3 @@ def kernel_gradient_winograd(x, g, pads, block_pixels: int = BLOCK_PIXELS):
 
     m = lax.fori_loop(0, blocks, block, jnp.zeros((16, c_in, c_out), acc)).reshape(4, 4, c_in, c_out)
     return _winograd_at(_winograd_at(m).transpose(1, 0, 2, 3)).transpose(1, 0, 2, 3)
-
-
-class Conv(nn.Conv):
-    """`flax.linen.Conv` (same attributes, parameters and initialisation) computed by
-    `conv_general_dilated` above."""
-
-    conv_general_dilated: object = staticmethod(conv_general_dilated)
-
-
-def upsample_by_matmul(x, kernel):
-    """A transposed convolution whose stride equals its kernel: each input pixel becomes a k x k
-    block, out[b, k i + p, k j + q, o] = sum_c x[b, i, j, c] kernel[p, q, c, o].
-
-    x: (B, h, w, C_in); kernel: (k, k, C_in, C_out) -> (B, k h, k w, C_out). One matmul and a
-    depth-to-space reshape: on XLA:CPU faster than the transposed convolution both ways (input
-    128x160x64 -> 32 channels: forward 4 vs 7 ms, kernel gradient 5 vs 270 ms).
-    """
-    k = kernel.shape[0]
-    b, h, w, c = x.shape
-    features = kernel.shape[-1]
-    y = x.reshape(-1, c) @ kernel.transpose(2, 0, 1, 3).reshape(c, k * k * features)
-    y = y.reshape(b, h, w, k, k, features).transpose(0, 1, 3, 2, 4, 5)
-    return y.reshape(b, k * h, k * w, features)
-
-
-class ConvTranspose(nn.Module):
-    """`flax.linen.ConvTranspose(features, (k, k), strides=(k, k), padding='VALID')` (same
-    parameters, initialisation and values) by `upsample_by_matmul`: (B, h, w, C) ->
-    (B, k h, k w, features). Flax's kernel is applied spatially flipped (lax.conv_transpose
-    without transpose_kernel), so the matmul takes kernel[::-1, ::-1]."""
-
-    features: int
-    factor: int
-    use_bias: bool = True
-    dtype: object = None
-
-    @nn.compact
-    def __call__(self, x):
-        k = self.factor
-        kernel = self.param("kernel", nn.initializers.lecun_normal(), (k, k, x.shape[-1], self.features))
-        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,)) if self.use_bias else None
-        x, kernel, bias = nn.dtypes.promote_dtype(x, kernel, bias, dtype=self.dtype)
-        y = upsample_by_matmul(x, kernel[::-1, ::-1])
-        return y if bias is None else y + bias

@@ -1,31 +1,22 @@
 """Model variables in one place: fresh ones (`init_unet`, `random_depth`, `init_depth` from
 released Depth Anything V2 weights) and stored ones (`load_stage1` for Stage II, `load_model`
-for eval / predict / export, `save_model` to write a model those read).
+for eval / predict / export; `train.state.save_model` writes a model those read).
 """
 
 from __future__ import annotations
 
 import functools
-import os
 from collections.abc import Collection, Sequence
 from typing import Any
 
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import (
-    STAGE1_IMAGES,
-    STAGE1_MODEL_KEYS,
-    Config,
-    from_dict,
-    get_key,
-    resolved_raw_bits,
-    with_keys,
-)
+from irdepth_jax.config import STAGE1_IMAGES, STAGE1_MODEL_KEYS, Config, from_dict, get_key, with_keys
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
-from irdepth_jax.train.checkpoint import CheckpointError, find_checkpoint, read_meta, restore_items
+from irdepth_jax.runs.checkpoint import CheckpointError, find_checkpoint, read_meta, restore_items
 
 STAGE1_STAGES = ("stage1_i2", "stage1_i1")
 """Checkpoints a Stage II run starts from: I-2, or I-1 when there is no I-2."""
@@ -38,7 +29,7 @@ def init_key(seed: int) -> jax.Array:
 
 @functools.partial(jax.jit, static_argnums=0)
 def _init_unet(unet_cfg, key):
-    return MTSAUNet(unet_cfg).init(key, jnp.zeros((1, 32, 32), jnp.uint16), train=False)
+    return MTSAUNet(unet_cfg).init(key, jnp.zeros((1, 32, 32), jnp.float32), train=False)
 
 
 def init_unet(cfg: Config) -> dict:
@@ -315,35 +306,3 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
     unet = dict(items["frozen"]["unet"]) if has_unet else None
     return cfg, stage, {"unet": unet, "depth": items["model"]["params"],
                         "segmentation": segmentation, "trained_on": trained_on}
-
-
-def save_model(workdir: str, cfg: Config, unet_vars: dict | None, da_params: Any,
-               segmentation: dict | None = None) -> str:
-    """Writes a Stage II checkpoint that `load_model` (so eval, predict, export) reads: e.g. a
-    Stage I model with released Depth Anything V2 weights, or untrained weights for a benchmark.
-
-    Args:
-      workdir: a new run directory (its ``checkpoints/stage2``).
-      cfg: the config the variables belong to (`data.raw_bits` 14 or 16).
-      unet_vars: Stage I ``{'params', 'batch_stats'}`` (None for a baseline without Stage I).
-      da_params: Depth Anything V2 params.
-      segmentation: what the segmentation branch was trained on (recorded in the meta).
-    Returns:
-      the checkpoint directory.
-    """
-    from irdepth_jax.config import to_dict
-    from irdepth_jax.train.checkpoint import Checkpointer
-    from irdepth_jax.train.state import TrainState, stage2_optimizer
-
-    resolved_raw_bits(cfg)
-    tx, lr_fns = stage2_optimizer(cfg, 1)
-    state = TrainState.create(da_params, {}, tx, jax.random.PRNGKey(cfg.seed), lr_fns)
-    directory = os.path.join(workdir, "checkpoints", "stage2")
-    ckpt = Checkpointer(directory, "stage2")
-    try:
-        ckpt.save(0, state, {"config": to_dict(cfg), "segmentation": segmentation},
-                  frozen=None if unet_vars is None else {"unet": unet_vars}, force=True)
-        ckpt.wait()
-    finally:
-        ckpt.close()
-    return directory
