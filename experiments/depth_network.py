@@ -9,7 +9,9 @@ Gates (`experiments.claims` reports a depth claim as "undecidable: <gate>" when 
 
 1. pretraining: the pretrained network on the held-out evaluation renders' visible images
    reaches delta<1.25 >= `GATE_RGB_D1`, and >= `GATE_RGB_MARGIN` above the same network trained
-   for the same steps on a constant grey image (what the scene layout alone gives);
+   for the same steps on a constant grey image (what the scene layout alone gives); that blank
+   network must itself reach `GATE_BLANK_HEALTHY` x the layout bound (`layout_bound`: the best
+   per-pixel constant depth), or it collapsed and the margin over it would mean nothing;
 2. Stage I: the multi-task model's segmentation mIoU on the evaluation set >= `GATE_STAGE1_MIOU`
    (so the Hue channel and the sky mask carry information);
 3. per depth table: the HSV arm beats the blank-image control by >= `GATE_HSV_MARGIN`
@@ -20,12 +22,16 @@ from __future__ import annotations
 
 import dataclasses
 
-from experiments.cache import Context
+import numpy as np
+
+from experiments.cache import EVAL_SPLIT, Context
 
 GATE_RGB_D1 = 0.85
 GATE_RGB_MARGIN = 0.15
 GATE_STAGE1_MIOU = 0.6
 GATE_HSV_MARGIN = 0.10
+GATE_BLANK_HEALTHY = 0.8
+LAYOUT_TRAIN_FRAMES = 400  # training frames the layout bound is fitted on (every k-th)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +62,37 @@ QUICK_RECIPE = Recipe(frames=24, steps=2)
 """--quick's: a smoke test of the mechanics, not a pretrained network."""
 
 
+def layout_bound(train_depth: np.ndarray, eval_depth: np.ndarray,
+                 candidates: np.ndarray = np.geomspace(0.5, 200.0, 120)) -> float:
+    """δ<1.25 on `eval_depth` of the best image-blind prediction fitted on `train_depth`: per
+    pixel, the candidate depth within 1.25x of the most training frames' valid depths there
+    (what a network that ignores its input can at best learn for δ<1.25).
+
+    Args:
+      train_depth, eval_depth: (N, H, W) and (M, H, W) depth in metres, 0 where not valid.
+      candidates: (K,) depths to choose from.
+    Returns:
+      the mean over evaluation frames of the share of valid pixels within 1.25x.
+    """
+    counts = np.stack([((train_depth > 0) & (np.maximum(c / np.maximum(train_depth, 1e-6),
+                                                        train_depth / c) < 1.25)).sum(0)
+                       for c in candidates])
+    blind = candidates[counts.argmax(0)]  # (H, W)
+    scores = [np.mean(np.maximum(blind[d > 0] / d[d > 0], d[d > 0] / blind[d > 0]) < 1.25)
+              for d in eval_depth if (d > 0).any()]
+    return float(np.mean(scores))
+
+
+def gate_passed(rgb_d1: float, blank_d1: float, layout_d1: float) -> bool:
+    """Gate 1 (module docstring) from the two networks' δ<1.25 and the layout bound's."""
+    return bool(rgb_d1 >= GATE_RGB_D1 and rgb_d1 - blank_d1 >= GATE_RGB_MARGIN
+                and blank_d1 >= GATE_BLANK_HEALTHY * layout_d1)
+
+
+def _depths(dataset, indices) -> np.ndarray:
+    return np.stack([dataset[int(i)]["depth"] for i in indices])
+
+
 def pretrained_depth(ctx: Context, recipe: Recipe = RECIPE) -> str:
     """The run directory of the depth network pretrained on visible images (trained and
     evaluated first when not cached); sets it as every Stage II run's ``depth.checkpoint``."""
@@ -72,11 +109,17 @@ def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
     info = ctx.use_pretraining_set(recipe.frames)
     d1 = {image: ctx.result("depth", recipe.overrides(image), recipe.seed)["stage2"]["all"]["d1"]
           for image in ("rgb", "blank")}
-    passed = d1["rgb"] >= GATE_RGB_D1 and d1["rgb"] - d1["blank"] >= GATE_RGB_MARGIN
+    train, train_idx = ctx.pretraining_source(recipe.frames)[0].frames("train")
+    step = max(1, len(train_idx) // LAYOUT_TRAIN_FRAMES)
+    bound = layout_bound(_depths(train, train_idx[::step]), _depths(*ctx.eval_source.frames(EVAL_SPLIT)))
     return {
-        "rgb_d1": round(d1["rgb"], 4), "blank_d1": round(d1["blank"], 4), "passed": bool(passed),
+        "rgb_d1": round(d1["rgb"], 4), "blank_d1": round(d1["blank"], 4),
+        "passed": gate_passed(d1["rgb"], d1["blank"], bound),
+        "layout_bound_d1": round(bound, 4),
         "rule": f"rgb_d1 >= {GATE_RGB_D1} and rgb_d1 - blank_d1 >= {GATE_RGB_MARGIN} (delta<1.25 "
-                "on the held-out evaluation renders' visible images)",
+                "on the held-out evaluation renders' visible images), and blank_d1 >= "
+                f"{GATE_BLANK_HEALTHY} x layout_bound_d1 (a blank network that collapsed is no "
+                "control)",
         "made_by": (f"irdepth train depth on {recipe.frames} rendered visible frames "
                     f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
                     f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}, "

@@ -324,7 +324,8 @@ def test_claims_script_lists_every_claim(quick_results, tmp_path):
 def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     """Without training: --depth-init pretrained's network becomes every Stage II run's
     depth.checkpoint (Stage I runs keep theirs), a run's cache key does not depend on where the
-    cache is, and the pretraining gate is rgb_d1 >= 0.85 and >= 0.15 above blank_d1."""
+    cache is, and the pretraining gate is rgb_d1 >= 0.85, >= 0.15 above blank_d1, with a
+    blank network that reached 0.8 x the layout bound."""
     from experiments import depth_network
 
     ctx = runner.context(quick=True, cache=quick_cache)
@@ -338,17 +339,28 @@ def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     monkeypatch.setattr(ctx, "cache", "/elsewhere/cache")
     assert os.path.basename(ctx.run_dir("stage2", moved)) == key
 
-    def gate(rgb, blank):
-        d1 = {"rgb": rgb, "blank": blank}
-        monkeypatch.setattr(ctx, "use_pretraining_set", lambda frames: {
-            "height": 64, "width": 80, "scenes": "street", "seed": 2, "made_by": "render"})
-        monkeypatch.setattr(ctx, "result", lambda kind, overrides, seed: {"stage2": {"all": {
-            "d1": d1[overrides[0].split("=")[1]]}}})
-        return depth_network.pretraining_gate(ctx)
+    assert depth_network.gate_passed(0.90, 0.70, 0.40) and depth_network.gate_passed(0.85, 0.70, 0.40)
+    assert not depth_network.gate_passed(0.84, 0.30, 0.30)  # below 0.85
+    assert not depth_network.gate_passed(0.90, 0.76, 0.40)  # less than 0.15 above blank
+    assert not depth_network.gate_passed(0.90, 0.02, 0.40)  # the blank network collapsed
+    assert depth_network.gate_passed(0.90, 0.33, 0.40)  # above 0.8 x the layout bound
 
-    assert gate(0.90, 0.70)["passed"] and gate(0.85, 0.70)["passed"]
-    assert not gate(0.84, 0.30)["passed"] and not gate(0.90, 0.76)["passed"]
-    assert gate(0.9, 0.5)["rgb_d1"] == 0.9 and gate(0.9, 0.5)["blank_d1"] == 0.5
+
+def test_layout_bound_worked_by_hand():
+    """Training frames at 10 m on the left half and 40 m on the right: the best constant is ~10
+    and ~40 m per pixel; an evaluation frame at those depths scores 1, one at twice them 0, and
+    a pixel without depth in every training frame does not count."""
+    from experiments import depth_network
+
+    train = np.zeros((3, 2, 4), np.float32)
+    train[:, :, :2], train[:, :, 2:] = 10.0, 40.0
+    train[0, 0, 0] = 0.0  # one missing return
+    same, double = train[1:2], 2 * train[1:2]
+    assert depth_network.layout_bound(train, same) == 1.0
+    assert depth_network.layout_bound(train, double) == 0.0
+    mixed = same.copy()
+    mixed[0, :, 2:] = 80.0  # right half wrong
+    assert depth_network.layout_bound(train, mixed) == pytest.approx(0.5)
 
 
 @pytest.mark.slow
