@@ -15,6 +15,9 @@ Layout of a cache directory (``--cache``, default ``workdir/experiments``):
   protocol (aggregated, and per frame for `experiments.claims`);
 * ``xla/``: JAX's persistent compilation cache.
 
+Runs committed with the repository (`COMMITTED_RUNS`) are copied into a cache that lacks them
+instead of being trained (unless ``--no-committed-runs``).
+
 Run kinds: ``stage1_i1`` (Stage I-1 only: the single-task model of table 2), ``stage1`` (I-1
 then I-2; its I-1 phase is copied from the matching ``stage1_i1`` run, so the multi-task and
 single-task models of a seed start from the same I-1 weights), ``stage2`` (Depth Anything V2
@@ -49,6 +52,12 @@ DATA_SEED = 0  # the synthetic benchmark is one fixed dataset; --seeds vary the 
 EVAL_SEED = 1  # its evaluation set: other scenes of the same distribution
 PRETRAIN_SEED = 2  # the depth pretraining set (visible images + depth): other scenes again
 MS2_STRIDE = 10  # the MS2 protocol evaluates every 10th test frame
+COMMITTED_RUNS = os.path.join(REPO, "experiments", "pretrained")
+"""Runs committed with the repository, each under its cache name (``<kind>-<hash>``): the
+pretrained depth network of `experiments.depth_network` (its weights, without the optimizer
+state) and the evaluations of it and of its blank control, with the commands that made them.
+Pretraining takes about an hour on a 2-core machine; a cache that lacks one of these runs starts
+from the committed copy (same config, same rendered data, same key) instead of training it."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,6 +229,7 @@ class Context:
         'train_wall_s', 'eval_wall_s', 'run'}."""
         cfg = self.config(kind, overrides, seed)
         workdir = self.run_dir(kind, cfg, self.pretraining_data if kind == "depth" else None)
+        self._adopt_committed(workdir)
         path = os.path.join(workdir, f"eval-{self.eval_key}.json")
         if os.path.exists(path):
             with open(path) as f:
@@ -240,6 +250,24 @@ class Context:
         np.savez_compressed(path[:-len(".json")] + ".npz", **frames)
         _write_json(path, record)  # last: its presence means the run is complete
         return record
+
+    def _adopt_committed(self, workdir: str) -> None:
+        """Copies the committed run of `workdir`'s name (`COMMITTED_RUNS`) into the cache when
+        the cache has no such run (whole: copied beside it, then renamed into place)."""
+        committed = os.path.join(COMMITTED_RUNS, os.path.basename(workdir))
+        if self.args.no_committed_runs or os.path.exists(workdir) or not os.path.isdir(committed):
+            return
+        self.log(f"using the committed run {os.path.relpath(committed, REPO)} (see its "
+                 "MADE_BY.md; --no-committed-runs trains it instead)")
+        os.makedirs(os.path.dirname(workdir), exist_ok=True)
+        copying = tempfile.mkdtemp(prefix=f"{os.path.basename(workdir)}.copying-",
+                                   dir=os.path.dirname(workdir))
+        try:
+            shutil.copytree(committed, copying, dirs_exist_ok=True)
+            with contextlib.suppress(OSError):  # another runner's copy came first
+                os.rename(copying, workdir)
+        finally:
+            shutil.rmtree(copying, ignore_errors=True)
 
     def workdir(self, kind: str, overrides: tuple[str, ...], seed: int) -> str:
         """The directory of a row's run for `seed` (trained and evaluated first if not cached)."""

@@ -20,11 +20,18 @@ Gates (`experiments.claims` reports a depth claim as "undecidable: <gate>" when 
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import glob
+import json
+import os
+import shutil
+import sys
+from collections.abc import Sequence
 
 import numpy as np
 
-from experiments.cache import EVAL_SPLIT, Context
+from experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
 
 GATE_RGB_D1 = 0.85
 GATE_RGB_MARGIN = 0.15
@@ -44,17 +51,23 @@ class Recipe:
       steps: optimizer steps (batch `stage2.batch_size` of the preset).
       learning_rate: backbone rate (the head's is `stage2.head_lr_multiplier` x it), poly decay.
       seed: training seed (one pretrained network for every Stage II seed, as one release).
+      blank_overrides: what the blank network's recipe changes. Its head learns at the
+        backbone's rate: at the usual 10x, the ReLU units of its head died within 50 steps in
+        the pilot (a constant image gives every pixel the same features; gradient norm 0,
+        δ<1.25 0.02), and a collapsed control says nothing of what the layout gives.
     """
 
-    frames: int = 2000
-    steps: int = 3000
+    frames: int = 6000
+    steps: int = 10000
     learning_rate: float = 1e-4
     seed: int = 0
+    blank_overrides: tuple[str, ...] = ("stage2.head_lr_multiplier=1",)
 
     def overrides(self, image: str) -> tuple[str, ...]:
         """The `train depth` overrides for the network trained on `image` ('rgb' or 'blank')."""
         return (f"stage2.preprocessing={image}", f"stage2.steps={self.steps}",
-                f"stage2.learning_rate={self.learning_rate:g}")
+                f"stage2.learning_rate={self.learning_rate:g}",
+                *(self.blank_overrides if image == "blank" else ()))
 
 
 RECIPE = Recipe()
@@ -123,7 +136,81 @@ def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
         "made_by": (f"irdepth train depth on {recipe.frames} rendered visible frames "
                     f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
                     f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}, "
-                    f"seed {recipe.seed}; blank: the same on a constant grey image"),
+                    f"seed {recipe.seed}; blank: the same on a constant grey image"
+                    + (f" with {', '.join(recipe.blank_overrides)}" if recipe.blank_overrides else "")),
         "encoder": ctx.base.depth.encoder, "recipe": dataclasses.asdict(recipe),
         "pretraining_data": info["made_by"],
     }
+
+
+COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
+                   "eval-*.npz")
+"""What `commit_networks` copies of a run: its records; of the pretrained network also the last
+checkpoint's weights (the `model` item; not the optimizer state, twice their size)."""
+
+
+def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED_RUNS,
+                    command: str = "") -> list[str]:
+    """Copies the pretrained network and its blank control, trained and evaluated in `ctx`'s
+    cache, into `into` under their cache names (see `experiments.cache.COMMITTED_RUNS`), each
+    with a MADE_BY.md naming `command`; returns the directories written."""
+    gate = pretraining_gate(ctx, recipe)
+    written = []
+    for image in ("rgb", "blank"):
+        run = ctx.workdir("depth", recipe.overrides(image), recipe.seed)
+        target = os.path.join(into, os.path.basename(run))
+        shutil.rmtree(target, ignore_errors=True)
+        os.makedirs(target)
+        for pattern in COMMITTED_FILES:
+            for path in glob.glob(os.path.join(run, pattern)):
+                shutil.copy2(path, target)
+        if image == "rgb":
+            checkpoints = os.path.join(run, "checkpoints", "stage2")
+            last = max((d for d in os.listdir(checkpoints) if d.isdigit()), key=int)
+            shutil.copytree(os.path.join(checkpoints, last),
+                            os.path.join(target, "checkpoints", "stage2", last),
+                            ignore=lambda directory, names: ["train"] if directory.endswith(last) else [])
+        with open(os.path.join(target, "MADE_BY.md"), "w") as f:
+            f.write(f"# Depth Anything V2 pretrained on rendered {'visible' if image == 'rgb' else 'blank'} images\n\n"
+                    f"Made by `{command}` (`experiments/depth_network.py`): {gate['made_by']}.\n"
+                    f"On the held-out evaluation renders: delta<1.25 {gate[f'{image}_d1']} "
+                    f"(layout bound {gate['layout_bound_d1']}); gate passed: {gate['passed']} "
+                    f"({gate['rule']}).\n\nRecipe: `{json.dumps(gate['recipe'])}`. Pretraining data: "
+                    f"`{gate['pretraining_data']}`.\n")
+        written.append(target)
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    """Trains (or reuses from the cache) the pretrained depth network and its blank control,
+    prints gate 1, and with --commit copies both into experiments/pretrained."""
+    from experiments import runner
+
+    ap = argparse.ArgumentParser(
+        prog="python experiments/depth_network.py",
+        description="Pretrain Depth Anything V2 on rendered visible images (and the same on a "
+                    "blank image), measure the pretraining gate, and optionally commit both "
+                    f"runs. Recipe: {RECIPE}. About an hour per network on 2 CPU cores; "
+                    "interrupted runs resume from their last checkpoint.")
+    ap.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
+    ap.add_argument("--cache", default=DEFAULT_CACHE, help="experiment cache (as the table scripts')")
+    ap.add_argument("--set", dest="overrides", nargs="*", default=["data.scenes=varied"],
+                    metavar="KEY=VALUE", help="config overrides (default: data.scenes=varied, "
+                                              "what the depth tables run with)")
+    ap.add_argument("--commit", action="store_true",
+                    help=f"copy both runs into {os.path.relpath(COMMITTED_RUNS, REPO)}")
+    ap.add_argument("--no-progress", action="store_true")
+    args = ap.parse_args(argv)
+    ctx = runner.context(args.preset, overrides=args.overrides, cache=args.cache,
+                         progress=not args.no_progress)
+    gate = pretraining_gate(ctx)
+    print(json.dumps(gate, indent=2))
+    if args.commit:
+        command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
+        for path in commit_networks(ctx, command=command):
+            print(f"wrote {os.path.relpath(path, REPO)}")
+    return gate
+
+
+if __name__ == "__main__":
+    main()

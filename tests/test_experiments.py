@@ -17,6 +17,7 @@ import importlib
 import json
 import math
 import os
+import types
 
 import jax
 import numpy as np
@@ -344,6 +345,66 @@ def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     assert not depth_network.gate_passed(0.90, 0.76, 0.40)  # less than 0.15 above blank
     assert not depth_network.gate_passed(0.90, 0.02, 0.40)  # the blank network collapsed
     assert depth_network.gate_passed(0.90, 0.33, 0.40)  # above 0.8 x the layout bound
+
+
+def test_a_committed_run_is_copied_into_the_cache_instead_of_trained(quick_cache, tmp_path, monkeypatch):
+    """A run committed under `cache.COMMITTED_RUNS` by its cache name (the pretrained depth
+    network) is copied into a cache that lacks it and its evaluation is read, with no training;
+    with --no-committed-runs the cache does not take it."""
+    from experiments import cache, depth_network
+
+    monkeypatch.setattr(cache, "COMMITTED_RUNS", str(tmp_path))
+    recipe = depth_network.Recipe(frames=24, steps=7)  # a key no other test trains
+    ctx = runner.context(quick=True, cache=quick_cache)
+    ctx.use_pretraining_set(recipe.frames)
+    overrides = recipe.overrides("rgb")
+    name = os.path.basename(ctx.run_dir("depth", ctx.config("depth", overrides, 0), ctx.pretraining_data))
+    committed = tmp_path / name
+    committed.mkdir()
+    record = {"stage2": {"all": {"d1": 0.9}}, "run": name}
+    (committed / f"eval-{ctx.eval_key}.json").write_text(json.dumps(record))
+    (committed / "trained.json").write_text(json.dumps({"wall_s": 3600.0}))
+
+    ctx.args.no_committed_runs = True
+    ctx._adopt_committed(os.path.join(ctx.cache, "runs", name))
+    assert not os.path.exists(os.path.join(ctx.cache, "runs", name))
+    ctx.args.no_committed_runs = False
+    assert ctx.result("depth", overrides, 0) == record
+    assert sorted(os.listdir(os.path.join(ctx.cache, "runs", name))) == sorted(os.listdir(committed))
+
+
+def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
+    """`depth_network.commit_networks`: the pretrained network's run keeps its records and its last
+    checkpoint's weights (no `train` item, no earlier step); the blank control's only its records;
+    each gets a MADE_BY.md with the command and the gate."""
+    from experiments import depth_network
+
+    runs = {}
+    for image in ("rgb", "blank"):
+        run = tmp_path / "cache" / f"depth-{image}000000000"
+        for step in ("5", "10"):
+            for item in ("model", "train", "meta"):
+                (run / "checkpoints" / "stage2" / step / item).mkdir(parents=True)
+                (run / "checkpoints" / "stage2" / step / item / "data").write_text(item)
+        for name in ("config.json", "trained.json", "metrics.jsonl", "eval-abc.json", "eval-abc.npz"):
+            (run / name).write_text("{}")
+        (run / "tb").mkdir()
+        runs[image] = run
+    gate = {"made_by": "made", "rgb_d1": 0.9, "blank_d1": 0.4, "layout_bound_d1": 0.45,
+            "passed": True, "rule": "rule", "recipe": {}, "pretraining_data": "data"}
+    monkeypatch.setattr(depth_network, "pretraining_gate", lambda ctx, recipe: gate)
+    ctx = types.SimpleNamespace(workdir=lambda kind, overrides, seed: str(
+        runs["blank" if "stage2.preprocessing=blank" in overrides else "rgb"]))
+    written = depth_network.commit_networks(ctx, into=str(tmp_path / "committed"), command="CMD")
+    rgb, blank = (tmp_path / "committed" / runs[image].name for image in ("rgb", "blank"))
+    assert written == [str(rgb), str(blank)]
+    records = ["MADE_BY.md", "config.json", "eval-abc.json", "eval-abc.npz", "metrics.jsonl", "trained.json"]
+    assert sorted(os.listdir(blank)) == records
+    assert sorted(os.listdir(rgb)) == sorted(records + ["checkpoints"])
+    assert os.listdir(rgb / "checkpoints" / "stage2") == ["10"]
+    assert sorted(os.listdir(rgb / "checkpoints" / "stage2" / "10")) == ["meta", "model"]
+    made_by = (rgb / "MADE_BY.md").read_text()
+    assert "`CMD`" in made_by and "delta<1.25 0.9 " in made_by and "gate passed: True" in made_by
 
 
 def test_layout_bound_worked_by_hand():
