@@ -115,6 +115,15 @@ def pretrained_depth(ctx: Context, recipe: Recipe = RECIPE) -> str:
     return workdir
 
 
+def _made_by(info: dict, recipe: Recipe) -> str:
+    """How the two networks are made, in words (`info`: the pretraining set's record)."""
+    return (f"irdepth train depth on {recipe.frames} rendered visible frames "
+            f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
+            f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}, "
+            f"seed {recipe.seed}; blank: the same on a constant grey image"
+            + (f" with {', '.join(recipe.blank_overrides)}" if recipe.blank_overrides else ""))
+
+
 def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
     """Gate 1, measured: {'rgb_d1', 'blank_d1', 'passed', 'rule', 'made_by', ...} (the
     `depth_network` record of results.json and claims.json). Trains the two networks when not
@@ -133,11 +142,7 @@ def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
                 "on the held-out evaluation renders' visible images), and blank_d1 >= "
                 f"{GATE_BLANK_HEALTHY} x layout_bound_d1 (a blank network that collapsed is no "
                 "control)",
-        "made_by": (f"irdepth train depth on {recipe.frames} rendered visible frames "
-                    f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
-                    f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}, "
-                    f"seed {recipe.seed}; blank: the same on a constant grey image"
-                    + (f" with {', '.join(recipe.blank_overrides)}" if recipe.blank_overrides else "")),
+        "made_by": _made_by(info, recipe),
         "encoder": ctx.base.depth.encoder, "recipe": dataclasses.asdict(recipe),
         "pretraining_data": info["made_by"],
     }
@@ -150,15 +155,17 @@ checkpoint's weights (the `model` item; not the optimizer state, twice their siz
 
 
 def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED_RUNS,
-                    command: str = "") -> list[str]:
-    """Copies the pretrained network and its blank control, trained and evaluated in `ctx`'s
-    cache, into `into` under their cache names (see `experiments.cache.COMMITTED_RUNS`), each
-    with a MADE_BY.md naming `command`; returns the directories written."""
-    gate = pretraining_gate(ctx, recipe)
+                    command: str = "", images: Sequence[str] = ("rgb", "blank")) -> list[str]:
+    """Copies the networks trained on `images` ('rgb': the pretrained network, 'blank': its
+    control), trained and evaluated in `ctx`'s cache (trained first when not), into `into`
+    under their cache names (see `experiments.cache.COMMITTED_RUNS`), each with a MADE_BY.md
+    naming `command`; returns the directories written."""
+    info = ctx.use_pretraining_set(recipe.frames)
     written = []
-    for image in ("rgb", "blank"):
-        run = ctx.workdir("depth", recipe.overrides(image), recipe.seed)
-        target = os.path.join(into, os.path.basename(run))
+    for image in images:
+        record = ctx.result("depth", recipe.overrides(image), recipe.seed)
+        run = os.path.join(ctx.cache, "runs", record["run"])
+        target = os.path.join(into, record["run"])
         shutil.rmtree(target, ignore_errors=True)
         os.makedirs(target)
         for pattern in COMMITTED_FILES:
@@ -171,12 +178,12 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
                             os.path.join(target, "checkpoints", "stage2", last),
                             ignore=lambda directory, names: ["train"] if directory.endswith(last) else [])
         with open(os.path.join(target, "MADE_BY.md"), "w") as f:
-            f.write(f"# Depth Anything V2 pretrained on rendered {'visible' if image == 'rgb' else 'blank'} images\n\n"
-                    f"Made by `{command}` (`experiments/depth_network.py`): {gate['made_by']}.\n"
-                    f"On the held-out evaluation renders: delta<1.25 {gate[f'{image}_d1']} "
-                    f"(layout bound {gate['layout_bound_d1']}); gate passed: {gate['passed']} "
-                    f"({gate['rule']}).\n\nRecipe: `{json.dumps(gate['recipe'])}`. Pretraining data: "
-                    f"`{gate['pretraining_data']}`.\n")
+            f.write(f"# Depth Anything V2 trained on rendered {'visible' if image == 'rgb' else 'blank'} "
+                    f"images\n\nMade by `{command}` (`experiments/depth_network.py`): "
+                    f"{_made_by(info, recipe)}.\n\ndelta<1.25 on the held-out evaluation renders' "
+                    f"visible images ({record['eval_data']}): {record['stage2']['all']['d1']:.4f}.\n"
+                    f"Recipe: `{json.dumps(dataclasses.asdict(recipe))}`. Pretraining data: "
+                    f"`{info['made_by']}`.\n")
         written.append(target)
     return written
 
@@ -199,15 +206,18 @@ def main(argv: Sequence[str] | None = None) -> dict:
                                               "what the depth tables run with)")
     ap.add_argument("--commit", action="store_true",
                     help=f"copy both runs into {os.path.relpath(COMMITTED_RUNS, REPO)}")
+    ap.add_argument("--images", nargs="+", choices=("rgb", "blank"), default=["rgb", "blank"],
+                    help="which networks to train (and commit); the gate needs both")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     ctx = runner.context(args.preset, overrides=args.overrides, cache=args.cache,
                          progress=not args.no_progress)
-    gate = pretraining_gate(ctx)
-    print(json.dumps(gate, indent=2))
+    gate = pretraining_gate(ctx) if set(args.images) == {"rgb", "blank"} else None
+    if gate is not None:
+        print(json.dumps(gate, indent=2))
     if args.commit:
         command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
-        for path in commit_networks(ctx, command=command):
+        for path in commit_networks(ctx, command=command, images=args.images):
             print(f"wrote {os.path.relpath(path, REPO)}")
     return gate
 

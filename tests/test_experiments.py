@@ -376,12 +376,12 @@ def test_a_committed_run_is_copied_into_the_cache_instead_of_trained(quick_cache
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
     """`depth_network.commit_networks`: the pretrained network's run keeps its records and its last
     checkpoint's weights (no `train` item, no earlier step); the blank control's only its records;
-    each gets a MADE_BY.md with the command and the gate."""
+    each gets a MADE_BY.md with the command and its delta<1.25."""
     from experiments import depth_network
 
-    runs = {}
-    for image in ("rgb", "blank"):
-        run = tmp_path / "cache" / f"depth-{image}000000000"
+    records = {}
+    for image, d1 in (("rgb", 0.9), ("blank", 0.4)):
+        run = tmp_path / "cache" / "runs" / f"depth-{image}"
         for step in ("5", "10"):
             for item in ("model", "train", "meta"):
                 (run / "checkpoints" / "stage2" / step / item).mkdir(parents=True)
@@ -389,22 +389,23 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
         for name in ("config.json", "trained.json", "metrics.jsonl", "eval-abc.json", "eval-abc.npz"):
             (run / name).write_text("{}")
         (run / "tb").mkdir()
-        runs[image] = run
-    gate = {"made_by": "made", "rgb_d1": 0.9, "blank_d1": 0.4, "layout_bound_d1": 0.45,
-            "passed": True, "rule": "rule", "recipe": {}, "pretraining_data": "data"}
-    monkeypatch.setattr(depth_network, "pretraining_gate", lambda ctx, recipe: gate)
-    ctx = types.SimpleNamespace(workdir=lambda kind, overrides, seed: str(
-        runs["blank" if "stage2.preprocessing=blank" in overrides else "rgb"]))
+        records[image] = {"run": run.name, "eval_data": "eval", "stage2": {"all": {"d1": d1}}}
+    info = {"height": 8, "width": 8, "scenes": "varied", "seed": 2, "made_by": "rendered"}
+    ctx = types.SimpleNamespace(
+        cache=str(tmp_path / "cache"), use_pretraining_set=lambda frames: info,
+        result=lambda kind, overrides, seed: records["blank" if "stage2.preprocessing=blank" in overrides
+                                                     else "rgb"])
     written = depth_network.commit_networks(ctx, into=str(tmp_path / "committed"), command="CMD")
-    rgb, blank = (tmp_path / "committed" / runs[image].name for image in ("rgb", "blank"))
+    rgb, blank = (tmp_path / "committed" / f"depth-{image}" for image in ("rgb", "blank"))
     assert written == [str(rgb), str(blank)]
-    records = ["MADE_BY.md", "config.json", "eval-abc.json", "eval-abc.npz", "metrics.jsonl", "trained.json"]
-    assert sorted(os.listdir(blank)) == records
-    assert sorted(os.listdir(rgb)) == sorted(records + ["checkpoints"])
+    kept = ["MADE_BY.md", "config.json", "eval-abc.json", "eval-abc.npz", "metrics.jsonl", "trained.json"]
+    assert sorted(os.listdir(blank)) == kept
+    assert sorted(os.listdir(rgb)) == sorted(kept + ["checkpoints"])
     assert os.listdir(rgb / "checkpoints" / "stage2") == ["10"]
     assert sorted(os.listdir(rgb / "checkpoints" / "stage2" / "10")) == ["meta", "model"]
     made_by = (rgb / "MADE_BY.md").read_text()
-    assert "`CMD`" in made_by and "delta<1.25 0.9 " in made_by and "gate passed: True" in made_by
+    assert "`CMD`" in made_by and "0.9000" in made_by and "blank: the same on a constant grey image with" in made_by
+    assert "0.4000" in (blank / "MADE_BY.md").read_text()
 
 
 def test_layout_bound_worked_by_hand():
