@@ -5,7 +5,7 @@ images) on its thermal inputs. We cannot download those weights, so we make the 
 ``--depth-init pretrained`` pretrains our Depth Anything V2 on the visible images of a separate
 rendered set (`irdepth train depth`, the recipe below) and starts every Stage II run from it.
 
-Gates (`experiments.claims` reports a depth claim as "undecidable: <gate>" when one fails):
+Gates (`irdepth_experiments.claims` reports a depth claim as "undecidable: <gate>" when one fails):
 
 1. pretraining: the pretrained network on the held-out evaluation renders' visible images
    reaches delta<1.25 >= `GATE_RGB_D1`, and >= `GATE_RGB_MARGIN` above the same network trained
@@ -24,7 +24,7 @@ import dataclasses
 
 import numpy as np
 
-from experiments.cache import EVAL_SPLIT, Context
+from irdepth_experiments.cache import EVAL_SPLIT, Context
 
 GATE_RGB_D1 = 0.85
 GATE_RGB_MARGIN = 0.15

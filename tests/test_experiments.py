@@ -22,7 +22,7 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import cache, claims, report, runner
+from irdepth_experiments import cache, claims, report, runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TABLES = ("table1_preprocessing", "table2_multitask_reconstruction",
@@ -39,8 +39,8 @@ def table_param(name: str):
 
 
 def load_script(name: str):
-    """The module experiments.<name> (a table script)."""
-    return importlib.import_module(f"experiments.{name}")
+    """The module irdepth_experiments.<name> (a table script)."""
+    return importlib.import_module(f"irdepth_experiments.{name}")
 
 
 def quick_cache_dir(tmp_path_factory) -> str:
@@ -326,7 +326,7 @@ def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     depth.checkpoint (Stage I runs keep theirs), a run's cache key does not depend on where the
     cache is, and the pretraining gate is rgb_d1 >= 0.85, >= 0.15 above blank_d1, with a
     blank network that reached 0.8 x the layout bound."""
-    from experiments import depth_network
+    from irdepth_experiments import depth_network
 
     ctx = runner.context(quick=True, cache=quick_cache)
     pretrained = os.path.join(ctx.cache, "runs", "depth-0123456789ab")
@@ -350,7 +350,7 @@ def test_layout_bound_worked_by_hand():
     """Training frames at 10 m on the left half and 40 m on the right: the best constant is ~10
     and ~40 m per pixel; an evaluation frame at those depths scores 1, one at twice them 0, and
     a pixel without depth in every training frame does not count."""
-    from experiments import depth_network
+    from irdepth_experiments import depth_network
 
     train = np.zeros((3, 2, 4), np.float32)
     train[:, :, :2], train[:, :, 2:] = 10.0, 40.0
