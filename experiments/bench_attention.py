@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from experiments.bench_common import interleaved_medians, usable_cpus, wall_seconds
+from irdepth_experiments.bench_common import interleaved_medians, usable_cpus, wall_seconds
 from irdepth_jax.hostmem import keep_freed_memory
 from irdepth_jax.models.dinov2 import softmax_attention
 

@@ -28,7 +28,7 @@ import jax
 import numpy as np
 from jax import lax
 
-from experiments.bench_common import interleaved_medians, usable_cpus, wall_seconds
+from irdepth_experiments.bench_common import interleaved_medians, usable_cpus, wall_seconds
 from irdepth_jax.hostmem import keep_freed_memory
 from irdepth_jax.xla_cpu import conv, native_conv
 

@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from experiments.bench_common import (
+from irdepth_experiments.bench_common import (
     Worker,
     compiled_with_seconds,
     flops_of,
@@ -57,7 +57,7 @@ from experiments.bench_common import (
     versions,
     write_json,
 )
-from experiments.bench_unet import parse_size
+from irdepth_experiments.bench_unet import parse_size
 from irdepth_jax.losses import silog_loss
 from irdepth_jax.models.depth_anything import DepthAnythingV2, depth_anything_config
 from irdepth_jax.weights import load_depth_anything
@@ -210,7 +210,7 @@ def setup_reference(kind: str, weights: str, official_repo: str | None, encoder:
     import torch
     from transformers import DepthAnythingForDepthEstimation
 
-    from experiments.torch_reference import hf_to_official
+    from irdepth_experiments.torch_reference import hf_to_official
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
     hf = DepthAnythingForDepthEstimation.from_pretrained(weights).eval()
@@ -299,7 +299,7 @@ def main(argv=None) -> dict:
     rows = []
     with tempfile.TemporaryDirectory() as weights, contextlib.ExitStack() as stack:
         if with_torch:
-            from experiments.torch_reference import random_hf_model
+            from irdepth_experiments.torch_reference import random_hf_model
 
             base = depth_anything_config(args.encoder, metric=True, max_depth=MAX_DEPTH)
             random_hf_model(dataclasses.replace(base, pos_embed_mode="transformers")).save_pretrained(weights)

@@ -25,8 +25,8 @@ import time
 
 import jax
 
-from experiments.bench_common import interleaved_medians, set_xla_threads, usable_cpus, wall_seconds, write_json
-from experiments.bench_unet import parse_size
+from irdepth_experiments.bench_common import interleaved_medians, set_xla_threads, usable_cpus, wall_seconds, write_json
+from irdepth_experiments.bench_unet import parse_size
 from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.data.source import BatchStream, DataSource, device_batch, make_loader, phase_frames
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset

@@ -40,7 +40,7 @@ import cv2
 import jax
 import numpy as np
 
-from experiments.bench_common import (
+from irdepth_experiments.bench_common import (
     Worker,
     compiled_with_seconds,
     flops_of,
@@ -50,7 +50,7 @@ from experiments.bench_common import (
     versions,
     write_json,
 )
-from experiments.bench_unet import parse_size
+from irdepth_experiments.bench_unet import parse_size
 
 SIDES = ("ours", "torch", "onnx")
 
@@ -113,8 +113,8 @@ def setup_torch(preset: str, size, overrides=()):
     """`Worker` set-up of the PyTorch eager pipeline: the same calls as `setup_ours`."""
     import torch
 
-    from experiments.bench_common import torch_flops
-    from experiments.pipeline_torch import IdiomaticPipeline
+    from irdepth_experiments.bench_common import torch_flops
+    from irdepth_experiments.pipeline_torch import IdiomaticPipeline
 
     cfg, unet, depth = make_model(preset, "float32", overrides=overrides)
     model = IdiomaticPipeline(cfg, jax.device_get(unet), jax.device_get(depth))

@@ -52,7 +52,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
-from experiments.bench_common import (
+from irdepth_experiments.bench_common import (
     Worker,
     compiled_with_seconds,
     flops_of,
@@ -195,11 +195,11 @@ def setup_ours(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
 def torch_model(cfg, opponent: str):
     """The PyTorch opponent (`OPPONENTS`) of config `cfg`, random weights."""
     if opponent == "idiomatic":
-        from experiments.unet_idiomatic import MTSAUNetIdiomatic
+        from irdepth_experiments.unet_idiomatic import MTSAUNetIdiomatic
 
         return MTSAUNetIdiomatic(cfg)
     if opponent == "parity":
-        from experiments.unet_torch import MTSAUNetTorch
+        from irdepth_experiments.unet_torch import MTSAUNetTorch
 
         return MTSAUNetTorch(cfg)
     raise ValueError(f"unknown opponent {opponent!r} (one of {OPPONENTS})")
@@ -213,7 +213,7 @@ def setup_twin(preset: str, use_rgg: bool, size, batch: int, peak_size: int, opp
 
     import torch
 
-    from experiments.unet_torch import load_flax_params
+    from irdepth_experiments.unet_torch import load_flax_params
 
     cfg = unet_config(preset, use_rgg)
     raw, target, labels = bench_inputs(cfg.num_classes, size, batch)

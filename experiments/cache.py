@@ -12,7 +12,7 @@ Layout of a cache directory (``--cache``, default ``workdir/experiments``):
   covers every config field, so a run is reused by every table that needs it (the Stage I model
   of a seed is shared by tables 1-7) and an interrupted run resumes from its last checkpoint;
 * ``runs/.../eval-<hash>.json`` + ``.npz``: the run's metrics on one evaluation set under one
-  protocol (aggregated, and per frame for `experiments.claims`);
+  protocol (aggregated, and per frame for `irdepth_experiments.claims`);
 * ``xla/``: JAX's persistent compilation cache.
 
 Runs committed with the repository (`COMMITTED_RUNS`) are copied into a cache that lacks them
@@ -25,7 +25,7 @@ on the frozen Stage I model of the same seed: every Stage II row of a table star
 Stage I checkpoint and the same Depth Anything initialisation, a paired design) and ``depth``
 (`irdepth train depth`: Depth Anything V2 pretrained on the visible images of a separate
 rendered set, ``data/pretrain-...``; with ``--depth-init pretrained`` every Stage II run starts
-from it, as the paper's from the released weights: `experiments.depth_network`).
+from it, as the paper's from the released weights: `irdepth_experiments.depth_network`).
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ PRETRAIN_SEED = 2  # the depth pretraining set (visible images + depth): other s
 MS2_STRIDE = 10  # the MS2 protocol evaluates every 10th test frame
 COMMITTED_RUNS = os.path.join(REPO, "experiments", "pretrained")
 """Runs committed with the repository, each under its cache name (``<kind>-<hash>``): the
-pretrained depth network of `experiments.depth_network` (its weights, without the optimizer
+pretrained depth network of `irdepth_experiments.depth_network` (its weights, without the optimizer
 state) and the evaluations of it and of its blank control, with the commands that made them.
 Pretraining takes about an hour on a 2-core machine; a cache that lacks one of these runs starts
 from the committed copy (same config, same rendered data, same key) instead of training it."""
@@ -83,7 +83,7 @@ class Context:
     """The config, data and cache of one invocation, and the cached runs (see module doc).
 
     Args:
-      args: the parsed command line of `experiments.runner.parse_args`.
+      args: the parsed command line of `irdepth_experiments.runner.parse_args`.
       log: where progress lines go.
     """
 
@@ -116,7 +116,7 @@ class Context:
                          else Protocol("synthetic" if args.data is None else "folder"))
         self.data_fingerprint = _fingerprint(self.data_path)
         self.pretraining_data, self.pretraining_frames = None, 0
-        self.stage2_depth_checkpoint: str | None = None  # `experiments.depth_network`
+        self.stage2_depth_checkpoint: str | None = None  # `irdepth_experiments.depth_network`
         self.eval_key = hashlib.sha1(json.dumps(
             {"data": _fingerprint(self.eval_info["path"]), "split": EVAL_SPLIT,
              "protocol": dataclasses.asdict(self.protocol), "metrics": EVAL_METRICS_VERSION},

@@ -28,7 +28,7 @@ have:
   effect < 0), *no effect (equivalent)* (the 95 % interval inside ±margin), *undecided* (none
   of these; the seeds it would take are stated), or *no claim* where the paper's own difference
   is not in its favour.
-* **depth gates** (`depth_gates`, `experiments.depth_network`): a claim of a depth table (1, 4,
+* **depth gates** (`depth_gates`, `irdepth_experiments.depth_network`): a claim of a depth table (1, 4,
   7) is *undecidable: <gate>* instead, whatever its statistics, unless (1) its Depth Anything V2
   started from a network pretrained on visible images that passed its gate, (2) the Stage I
   model's mIoU (table 3, multi-task) reached the Stage I gate, and (3) its row beats the table's
@@ -52,9 +52,9 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import optimize, stats
 
-from experiments.depth_network import GATE_HSV_MARGIN, GATE_STAGE1_MIOU
-from experiments.report import COLUMN_NAMES, HIGHER_IS_BETTER
-from experiments.runner import RECON_COLUMNS, RESULTS
+from irdepth_experiments.depth_network import GATE_HSV_MARGIN, GATE_STAGE1_MIOU
+from irdepth_experiments.report import COLUMN_NAMES, HIGHER_IS_BETTER
+from irdepth_experiments.runner import RECON_COLUMNS, RESULTS
 
 ALPHA = 0.05
 POWER = 0.8

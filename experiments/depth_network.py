@@ -5,7 +5,7 @@ images) on its thermal inputs. We cannot download those weights, so we make the 
 ``--depth-init pretrained`` pretrains our Depth Anything V2 on the visible images of a separate
 rendered set (`irdepth train depth`, the recipe below) and starts every Stage II run from it.
 
-Gates (`experiments.claims` reports a depth claim as "undecidable: <gate>" when one fails):
+Gates (`irdepth_experiments.claims` reports a depth claim as "undecidable: <gate>" when one fails):
 
 1. pretraining: the pretrained network on the held-out evaluation renders' visible images
    reaches delta<1.25 >= `GATE_RGB_D1`, and >= `GATE_RGB_MARGIN` above the same network trained
@@ -31,7 +31,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
+from irdepth_experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
 
 GATE_RGB_D1 = 0.85
 GATE_RGB_MARGIN = 0.15
@@ -158,7 +158,7 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
                     command: str = "", images: Sequence[str] = ("rgb", "blank")) -> list[str]:
     """Copies the networks trained on `images` ('rgb': the pretrained network, 'blank': its
     control), trained and evaluated in `ctx`'s cache (trained first when not), into `into`
-    under their cache names (see `experiments.cache.COMMITTED_RUNS`), each with a MADE_BY.md
+    under their cache names (see `irdepth_experiments.cache.COMMITTED_RUNS`), each with a MADE_BY.md
     naming `command`; returns the directories written."""
     info = ctx.use_pretraining_set(recipe.frames)
     written = []
@@ -191,7 +191,7 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
 def main(argv: Sequence[str] | None = None) -> dict:
     """Trains (or reuses from the cache) the pretrained depth network and its blank control,
     prints gate 1, and with --commit copies both into experiments/pretrained."""
-    from experiments import runner
+    from irdepth_experiments import runner
 
     ap = argparse.ArgumentParser(
         prog="python experiments/depth_network.py",

@@ -72,8 +72,8 @@ def _device() -> dict:
 
 def run_stage2(dry: bool) -> dict:
     """Part 1 (see the module docstring): the figures of `bench_depth_anything` and the MFUs."""
-    from experiments.bench_depth_anything import main as bench_depth_anything
-    from experiments.bench_depth_anything import official_code_present
+    from irdepth_experiments.bench_depth_anything import main as bench_depth_anything
+    from irdepth_experiments.bench_depth_anything import official_code_present
 
     encoder, size, batch, dtype, amp, peak, repeats, warmup = SHAPES["stage2"]["dry" if dry else "gpu"]
     # the dry run's tiny encoder exists in transformers' port only (the official code builds ViT-S up)
@@ -114,9 +114,9 @@ def _predict_rate(workdir: str, frames: str, out: str, batch: int) -> tuple[floa
 
 def run_stage1(dry: bool) -> dict:
     """Part 2 (see the module docstring): Stage I step images/s and `irdepth predict` frames/s."""
-    from experiments.bench_common import wall_seconds
-    from experiments.bench_predict import make_model, write_frames
-    from experiments.bench_unet import setup_ours
+    from irdepth_experiments.bench_common import wall_seconds
+    from irdepth_experiments.bench_predict import make_model, write_frames
+    from irdepth_experiments.bench_unet import setup_ours
 
     preset, size, batch, repeats, p_size, p_frames, p_batch, p_dtype = SHAPES["stage1"]["dry" if dry else "gpu"]
     result = {"part": "stage1", "dry_run": dry, **_device(), "preset": preset}

@@ -33,9 +33,11 @@ if [[ $part == wheels ]]; then
   exit 0
 fi
 
-# installed from this checkout? (asked from another folder: Python puts the current one on sys.path)
-if ! (cd / && python -c "import irdepth_jax, os, sys; sys.exit(os.path.realpath(irdepth_jax.__path__[0]) != sys.argv[1])" \
-      "$(realpath irdepth_jax)") 2>/dev/null; then
+# both packages installed from this checkout? (asked from another folder: Python puts the current one on sys.path)
+here=$(pwd -P)
+if ! (cd / && python -c "import irdepth_jax as j, irdepth_experiments as e, os, sys
+sys.exit([os.path.realpath(m.__path__[0]) for m in (j, e)] != sys.argv[1:])" \
+      "$here/irdepth_jax" "$here/experiments") 2>/dev/null; then
   pip install -q --no-deps --no-build-isolation -e .
 fi
 missing=()
@@ -48,9 +50,9 @@ if (( ${#missing[@]} )); then
 fi
 
 case $part in
-  1) python -m experiments.gpu_run stage2 --out "$out" ;;
-  2) python -m experiments.gpu_run stage1 --out "$out" ;;
-  dry) python -m experiments.gpu_run stage2 --dry-run --out "$out"
-       python -m experiments.gpu_run stage1 --dry-run --out "$out" ;;
+  1) python -m irdepth_experiments.gpu_run stage2 --out "$out" ;;
+  2) python -m irdepth_experiments.gpu_run stage1 --out "$out" ;;
+  dry) python -m irdepth_experiments.gpu_run stage2 --dry-run --out "$out"
+       python -m irdepth_experiments.gpu_run stage1 --dry-run --out "$out" ;;
   *) echo "gpu_run.sh: unknown part '$part' (wheels, 1, 2 or dry)" >&2; exit 2 ;;
 esac

@@ -16,8 +16,8 @@ import os
 
 import numpy as np
 
-from experiments import runner
-from experiments.cache import DEFAULT_CACHE, EVAL_SPLIT
+from irdepth_experiments import runner
+from irdepth_experiments.cache import DEFAULT_CACHE, EVAL_SPLIT
 
 
 def main(argv=None) -> None:

@@ -21,9 +21,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from experiments.bench_depth_anything import OFFICIAL_REPO, official_metric_model
-from experiments.unet_idiomatic import MTSAUNetIdiomatic
-from experiments.unet_torch import load_flax_params, normalize_raw
+from irdepth_experiments.bench_depth_anything import OFFICIAL_REPO, official_metric_model
+from irdepth_experiments.unet_idiomatic import MTSAUNetIdiomatic
+from irdepth_experiments.unet_torch import load_flax_params, normalize_raw
 from irdepth_jax.config import Config, resolved_raw_bits
 from irdepth_jax.imaging.color import CLASS_HUES
 from irdepth_jax.models.depth_anything import IMAGENET_MEAN, IMAGENET_STD

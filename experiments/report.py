@@ -1,7 +1,7 @@
 """A table's outputs: results.md (mean +- std over seeds, per-seed values, the paper's figures,
 provenance), results.json, frames.npz (the per-frame metrics of every row and seed, which
-`experiments.claims` reduces to per-seed differences) and figure.png (bars = mean, error bars = std over seeds, dots =
-seeds)."""
+`irdepth_experiments.claims` reduces to per-seed differences) and figure.png (bars = mean, error bars = std
+over seeds, dots = seeds)."""
 
 from __future__ import annotations
 
@@ -13,10 +13,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from experiments.cache import REPO
+from irdepth_experiments.cache import REPO
 
 if TYPE_CHECKING:
-    from experiments.runner import Table
+    from irdepth_experiments.runner import Table
 
 COLUMN_NAMES = {"d1": "δ<1.25", "d2": "δ<1.25²", "d3": "δ<1.25³", "abs_rel": "AbsRel",
                 "sq_rel": "SqRel", "rmse": "RMSE", "silog": "SiLog", "ssim": "SSIM",

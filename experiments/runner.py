@@ -7,9 +7,9 @@ to read) and calls `main`, which
   preset plus a separate, larger evaluation set, rendered once into ``CACHE/data/``); or a
   folder-format / MS2 directory (``--data``; MS2 is evaluated with the literature's protocol);
 * trains and evaluates every run a row needs, once per (config, seed), through
-  `experiments.cache.Context` (runs are shared between tables and resume when interrupted);
+  `irdepth_experiments.cache.Context` (runs are shared between tables and resume when interrupted);
 * writes ``OUT/results.md``, ``results.json``, ``frames.npz`` and ``figure.png``
-  (`experiments.report`).
+  (`irdepth_experiments.report`).
 
 Every number in a result is a *synthetic-benchmark* number unless ``--data`` names a real
 dataset; the outputs say which.
@@ -27,8 +27,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from experiments.cache import DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
-from experiments.report import git_commit, hardware, summarise, write_outputs
+from irdepth_experiments.cache import DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
+from irdepth_experiments.report import git_commit, hardware, summarise, write_outputs
 from irdepth_jax.hostmem import keep_freed_memory
 
 RESULTS = os.path.join(REPO, "experiments", "results")
@@ -84,7 +84,7 @@ class Table:
       title: one-line title.
       about: what the table compares and how (Markdown, a few sentences).
       arms: the rows.
-      columns: metric keys (see `experiments.report.COLUMN_NAMES`).
+      columns: metric keys (see `irdepth_experiments.report.COLUMN_NAMES`).
       paper: the paper's figures for orientation: row label -> {column: value}.
       paper_note: where those come from.
     """
@@ -225,7 +225,7 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
     ctx = Context(args)
     depth_network = None
     if args.depth_init == "pretrained":
-        from experiments.depth_network import QUICK_RECIPE, RECIPE, pretrained_depth, pretraining_gate
+        from irdepth_experiments.depth_network import QUICK_RECIPE, RECIPE, pretrained_depth, pretraining_gate
 
         recipe = QUICK_RECIPE if args.quick else RECIPE
         depth_network = pretraining_gate(ctx, recipe)

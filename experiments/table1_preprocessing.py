@@ -8,11 +8,11 @@ histogram equalisation, CLAHE or the camera-like chain (plateau HE + DDE, our st
 camera's built-in IRCBA), or our HSV pseudo-RGB. Three more rows say what the HSV image's parts
 add: its V channel alone as a grey image (V only), the HSV image with hue 0 everywhere (no
 semantics in the input) and a constant grey image (blank: what the scene layout alone gives, the
-control every depth verdict must clear, `experiments.depth_network`). See `runner.py` for
+control every depth verdict must clear, `irdepth_experiments.depth_network`). See `runner.py` for
 options and caching.
 """
 
-from experiments.runner import DEPTH_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import DEPTH_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table1_preprocessing",

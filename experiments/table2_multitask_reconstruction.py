@@ -7,7 +7,7 @@ labels); the multi-task model continues with Stage I-2 (soft multi-task: CE + 0.
 reconstruction, every branch trainable). Both rows of a seed share the same I-1 run.
 """
 
-from experiments.runner import RECON_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import RECON_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table2_multitask_reconstruction",

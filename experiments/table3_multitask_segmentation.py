@@ -8,7 +8,7 @@ the reconstruction / gradient branches frozen; the encoder and the segmentation 
 with the Stage I-2 rates). Both rows of a seed share the same I-1 run.
 """
 
-from experiments.runner import SEG_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import SEG_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table3_multitask_segmentation",

@@ -13,7 +13,7 @@ with each prediction scaled by median(gt) / median(pred), which removes a per-im
 scale and leaves the error of shape.
 """
 
-from experiments.runner import DEPTH_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import DEPTH_COLUMNS, Arm, Table, main
 
 CONDITIONS = ("day", "dusk", "night")
 

@@ -6,7 +6,7 @@ Two full Stage I trainings (I-1 + I-2) that differ only in `unet.use_rgg` (witho
 decoders use plain skip connections).
 """
 
-from experiments.runner import RECON_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import RECON_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table5_rgg_reconstruction",

@@ -5,8 +5,8 @@
 The same two Stage I runs as table 5 (shared through the run cache), read for mIoU.
 """
 
-from experiments.runner import SEG_COLUMNS, Table, main
-from experiments.table5_rgg_reconstruction import TABLE as RECONSTRUCTION
+from irdepth_experiments.runner import SEG_COLUMNS, Table, main
+from irdepth_experiments.table5_rgg_reconstruction import TABLE as RECONSTRUCTION
 
 TABLE = Table(
     name="table6_rgg_segmentation",

@@ -7,7 +7,7 @@ loss pulls predictions in the Stage I sky mask to 0.99 x the largest training de
 blank-image control (a constant grey input, with the sky loss).
 """
 
-from experiments.runner import DEPTH_COLUMNS, SKY_COLUMNS, Arm, Table, main
+from irdepth_experiments.runner import DEPTH_COLUMNS, SKY_COLUMNS, Arm, Table, main
 
 TABLE = Table(
     name="table7_sky_loss",

@@ -3,7 +3,7 @@
 Plain `nn.Module`s (`nn.Conv2d`, `nn.BatchNorm2d`, `nn.ConvTranspose2d`), `torch.abs`,
 `F.max_pool2d` / `F.avg_pool2d`, NCHW, no operation added to match JAX's numerics. It computes
 what ours computes (eval and train mode outputs, the Stage I loss: tests/test_unet_idiomatic.py),
-with the parameter tensors of ours (`experiments.unet_torch.load_flax_params`: the module tree
+with the parameter tensors of ours (`irdepth_experiments.unet_torch.load_flax_params`: the module tree
 has the names of the parity twin). Where it differs from ours, it does so as PyTorch does, and
 nothing a speed comparison sees depends on it:
 
@@ -16,8 +16,8 @@ The parity twin `experiments/unet_torch.py` undoes both (8 % more aten operator 
 step of the `tiny` preset) and stays the reference of the numerical tests; this one is the
 reference of the benchmarks.
 
-    from experiments.unet_idiomatic import MTSAUNetIdiomatic
-    from experiments.unet_torch import load_flax_params
+    from irdepth_experiments.unet_idiomatic import MTSAUNetIdiomatic
+    from irdepth_experiments.unet_torch import load_flax_params
     model = load_flax_params(MTSAUNetIdiomatic(cfg.unet), variables)  # ours {'params', 'batch_stats'}
     out = model.eval()(torch.from_numpy(raw))                        # raw: uint16 (B, H, W)
 """
@@ -28,7 +28,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from experiments.unet_torch import BRANCHES, normalize_raw
+from irdepth_experiments.unet_torch import BRANCHES, normalize_raw
 from irdepth_jax.config import UNetConfig
 
 

@@ -6,7 +6,7 @@ backward that is a twin too (tests/test_unet_torch.py: outputs and SGD-updated p
 ~1e-5 in float32, outputs and gradients to 1e-9 with float64 networks). Tensors are NCHW: raw
 (B, H, W) or (B, 1, H, W) in, outputs (B, C, H, W) out, keyed as ours.
 
-    from experiments.unet_torch import MTSAUNetTorch, load_flax_params
+    from irdepth_experiments.unet_torch import MTSAUNetTorch, load_flax_params
     model = MTSAUNetTorch(cfg.unet)               # cfg.unet: irdepth_jax.config.UNetConfig
     load_flax_params(model, variables)            # our {'params', 'batch_stats'}
     out = model.eval()(torch.from_numpy(raw))     # raw: uint16 (B, H, W) counts

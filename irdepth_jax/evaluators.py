@@ -93,7 +93,7 @@ def evaluate_stage1(cfg: Config, unet_vars: dict, dataset, indices, dp: DataPara
 
     per_frame=True returns (metrics, frames) with frames = {'psnr', 'ssim', 'entropy': (N,)
     float64, 'condition': (N,) str, 'seg_cm': (M, C, C) int64 confusion matrix of each
-    segmentation frame, 'seg_condition': (M,) str}: what `experiments.claims` pairs per seed.
+    segmentation frame, 'seg_condition': (M,) str}: what `irdepth_experiments.claims` pairs per seed.
     """
     run = _Predictor(dp, "stage1", cfg, unet_vars)
     num_classes = cfg.unet.num_classes

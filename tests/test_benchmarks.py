@@ -9,7 +9,7 @@ from irdepth_jax.losses import silog_loss
 
 def test_the_official_side_times_our_silog_loss():
     torch = pytest.importorskip("torch", reason="the PyTorch side needs torch (the [torch] extra)")
-    from experiments.bench_depth_anything import silog_loss_torch
+    from irdepth_experiments.bench_depth_anything import silog_loss_torch
 
     rng = np.random.default_rng(0)
     pred, depth = rng.uniform(0.5, 80, (2, 2, 14, 28)).astype(np.float32)
@@ -22,7 +22,7 @@ def test_the_official_side_times_our_silog_loss():
 
 
 def test_loader_benchmark_reports_the_three_rates(tmp_path):
-    from experiments.bench_loader import main
+    from irdepth_experiments.bench_loader import main
 
     out = tmp_path / "loader.json"
     result = main(["--preset", "tiny", "--size", "32x48", "--frames", "16", "--steps", "2",
@@ -39,7 +39,7 @@ def test_attention_benchmark_sides_compute_the_same(what):
     pytest.importorskip("torch", reason="the PyTorch side needs torch (the [torch] extra)")
     import jax.numpy as jnp
 
-    from experiments.bench_attention import HEAD_DIM, HEADS, ours_call, torch_calls
+    from irdepth_experiments.bench_attention import HEAD_DIM, HEADS, ours_call, torch_calls
 
     rng = np.random.default_rng(0)
     q, k, v, g = (jnp.asarray(rng.standard_normal((2, HEADS, 37, HEAD_DIM), np.float32)) for _ in range(4))
@@ -89,7 +89,7 @@ class _FakeWorker:
 
 @pytest.mark.parametrize("one_at_a_time", [False, True])
 def test_unet_benchmark_one_at_a_time_never_holds_both_sides(monkeypatch, one_at_a_time):
-    from experiments import bench_unet
+    from irdepth_experiments import bench_unet
 
     monkeypatch.setattr(bench_unet, "Worker", _FakeWorker)
     _FakeWorker.alive = _FakeWorker.most_alive = 0
@@ -107,7 +107,7 @@ def test_unet_benchmark_one_at_a_time_never_holds_both_sides(monkeypatch, one_at
 
 
 def test_unet_benchmark_refuses_unequal_work(monkeypatch):
-    from experiments import bench_unet
+    from irdepth_experiments import bench_unet
 
     monkeypatch.setattr(bench_unet, "Worker", _FakeWorker)
     # the opponent counts 20 % fewer train-step FLOPs than XLA: not the same work
@@ -118,7 +118,7 @@ def test_unet_benchmark_refuses_unequal_work(monkeypatch):
 
 
 def test_bounds_work_out_the_rate_a_target_needs():
-    from experiments.bench_bounds import target_rows
+    from irdepth_experiments.bench_bounds import target_rows
 
     unet = {"preset": "paper", "matmul_peak": {"xla_gflops": 200.0},
             "results": [{"size": [256, 320], "batch": 4, "fwd_flops": 1e11, "train_flops": 4e11,
@@ -146,7 +146,7 @@ def test_bounds_work_out_the_rate_a_target_needs():
 
 
 def test_bounds_read_the_committed_results(capsys):
-    from experiments.bench_bounds import main
+    from irdepth_experiments.bench_bounds import main
 
     rows = main([])
     assert len(rows) >= 8 and all(0 < r["needed_peak_pct"] < 1000 for r in rows)

@@ -12,7 +12,7 @@ torch = pytest.importorskip("torch")
 pytest.importorskip("transformers")
 F = torch.nn.functional
 
-from experiments.torch_reference import hf_forward, hf_to_official, random_hf_model  # noqa: E402
+from irdepth_experiments.torch_reference import hf_forward, hf_to_official, random_hf_model  # noqa: E402
 from irdepth_jax.models.depth_anything import (  # noqa: E402
     IMAGENET_MEAN,
     IMAGENET_STD,

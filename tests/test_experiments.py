@@ -23,7 +23,7 @@ import jax
 import numpy as np
 import pytest
 
-from experiments import cache, claims, report, runner
+from irdepth_experiments import cache, claims, report, runner
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 TABLES = ("table1_preprocessing", "table2_multitask_reconstruction",
@@ -40,8 +40,8 @@ def table_param(name: str):
 
 
 def load_script(name: str):
-    """The module experiments.<name> (a table script)."""
-    return importlib.import_module(f"experiments.{name}")
+    """The module irdepth_experiments.<name> (a table script)."""
+    return importlib.import_module(f"irdepth_experiments.{name}")
 
 
 def quick_cache_dir(tmp_path_factory) -> str:
@@ -327,7 +327,7 @@ def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     depth.checkpoint (Stage I runs keep theirs), a run's cache key does not depend on where the
     cache is, and the pretraining gate is rgb_d1 >= 0.85, >= 0.15 above blank_d1, with a
     blank network that reached 0.8 x the layout bound."""
-    from experiments import depth_network
+    from irdepth_experiments import depth_network
 
     ctx = runner.context(quick=True, cache=quick_cache)
     pretrained = os.path.join(ctx.cache, "runs", "depth-0123456789ab")
@@ -351,7 +351,7 @@ def test_a_committed_run_is_copied_into_the_cache_instead_of_trained(quick_cache
     """A run committed under `cache.COMMITTED_RUNS` by its cache name (the pretrained depth
     network) is copied into a cache that lacks it and its evaluation is read, with no training;
     with --no-committed-runs the cache does not take it."""
-    from experiments import cache, depth_network
+    from irdepth_experiments import cache, depth_network
 
     monkeypatch.setattr(cache, "COMMITTED_RUNS", str(tmp_path))
     recipe = depth_network.Recipe(frames=24, steps=7)  # a key no other test trains
@@ -377,7 +377,7 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
     """`depth_network.commit_networks`: the pretrained network's run keeps its records and its last
     checkpoint's weights (no `train` item, no earlier step); the blank control's only its records;
     each gets a MADE_BY.md with the command and its delta<1.25."""
-    from experiments import depth_network
+    from irdepth_experiments import depth_network
 
     records = {}
     for image, d1 in (("rgb", 0.9), ("blank", 0.4)):
@@ -412,7 +412,7 @@ def test_layout_bound_worked_by_hand():
     """Training frames at 10 m on the left half and 40 m on the right: the best constant is ~10
     and ~40 m per pixel; an evaluation frame at those depths scores 1, one at twice them 0, and
     a pixel without depth in every training frame does not count."""
-    from experiments import depth_network
+    from irdepth_experiments import depth_network
 
     train = np.zeros((3, 2, 4), np.float32)
     train[:, :, :2], train[:, :, 2:] = 10.0, 40.0

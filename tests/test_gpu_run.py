@@ -14,7 +14,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 
 def test_table_without_results_says_not_measured(tmp_path):
-    from experiments.gpu_run import NOT_MEASURED, main
+    from irdepth_experiments.gpu_run import NOT_MEASURED, main
 
     main(["table", "--out", str(tmp_path)])
     table = (tmp_path / "gpu.md").read_text()
@@ -22,7 +22,7 @@ def test_table_without_results_says_not_measured(tmp_path):
 
 
 def test_gpu_part_refuses_without_a_gpu(tmp_path):
-    from experiments.gpu_run import main
+    from irdepth_experiments.gpu_run import main
 
     with pytest.raises(SystemExit, match="no GPU"):
         main(["stage1", "--out", str(tmp_path)])

@@ -89,7 +89,7 @@ def test_ablations_runs(monkeypatch, tmp_path):
     results = os.path.join(REPO, "experiments", "results")
     monkeypatch.setenv("IRDEPTH_RESULTS_DIR", results)
     nb = execute("ablations.ipynb", tmp_path)
-    from experiments import claims
+    from irdepth_experiments import claims
 
     records = claims.load_results(results)
     assert len(records) == 7

@@ -344,7 +344,7 @@ def test_a_cached_run_is_trained_by_one_runner(tmp_path):
     import json
     import types
 
-    from experiments.cache import Context
+    from irdepth_experiments.cache import Context
     from irdepth_jax.train.phase import RunOptions
     from irdepth_jax.train.workdir_lock import acquire, release
 
@@ -377,7 +377,7 @@ def test_a_dataset_rendered_by_two_runners_at_once_is_never_rewritten(tmp_path, 
     import dataclasses
     import types
 
-    from experiments.cache import Context
+    from irdepth_experiments.cache import Context
     from irdepth_jax.config import get_config
     from irdepth_jax.data import synthetic_dataset
 

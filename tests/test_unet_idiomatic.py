@@ -11,14 +11,14 @@ torch = pytest.importorskip("torch", reason="the PyTorch opponent needs torch (t
 
 from test_unet_torch import CASES, TOL, TRAIN_TOL, _assert_close, _image, _nhwc, _random_variables, _raw  # noqa: E402
 
-from experiments.bench_unet import (  # noqa: E402
+from irdepth_experiments.bench_unet import (  # noqa: E402
     ADADELTA,
     make_torch_train_step,
     stage1_loss,
     stage1_loss_torch,
 )
-from experiments.unet_idiomatic import MTSAUNetIdiomatic  # noqa: E402
-from experiments.unet_torch import MTSAUNetTorch, load_flax_params  # noqa: E402
+from irdepth_experiments.unet_idiomatic import MTSAUNetIdiomatic  # noqa: E402
+from irdepth_experiments.unet_torch import MTSAUNetTorch, load_flax_params  # noqa: E402
 from irdepth_jax.models.unet import MTSAUNet  # noqa: E402
 
 pytestmark = pytest.mark.parity

@@ -25,14 +25,14 @@ import pytest
 
 torch = pytest.importorskip("torch", reason="the PyTorch twin needs torch (the [torch] extra)")
 
-from experiments.bench_unet import (  # noqa: E402
+from irdepth_experiments.bench_unet import (  # noqa: E402
     ADADELTA,
     make_torch_train_step,
     make_train_step,
     stage1_loss,
     stage1_loss_torch,
 )
-from experiments.unet_torch import (  # noqa: E402
+from irdepth_experiments.unet_torch import (  # noqa: E402
     MTSAUNetTorch,
     flax_to_torch_state,
     gradient_magnitude,
