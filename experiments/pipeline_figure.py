@@ -35,7 +35,7 @@ def main(argv=None) -> None:
     import matplotlib.pyplot as plt
 
     from irdepth_jax.models.pipeline import run_pipeline
-    from irdepth_jax.predict import colorize_depth
+    from irdepth_jax.predict_outputs import colorize_depth
     from irdepth_jax.runs.variables import load_model
 
     ctx = runner.context(preset=args.preset, seeds=(args.seed,), quick=args.quick,

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from irdepth_jax.data.folder import DatasetError, FolderDataset, encode_depth, write_manifest, write_sample
+from irdepth_jax.data.folder import DatasetError, FolderDataset, write_manifest, write_sample
 from irdepth_jax.data.synthetic_dataset import (
     DEPTH_SPLIT,
     SEG_SPLIT,
@@ -117,13 +117,6 @@ def test_not_a_dataset(tmp_path):
     (tmp_path / "manifest.json").write_text(json.dumps(doc))
     with pytest.raises(DatasetError, match="lacks"):
         FolderDataset(tmp_path)
-
-
-def test_encode_depth_limits():
-    np.testing.assert_array_equal(encode_depth(np.array([0.0, 1 / 256, 1e-4, 255.99, -1.0])),
-                                  [0, 1, 1, 65533, 0])
-    with pytest.raises(ValueError, match="255.99"):
-        encode_depth(np.array([256.0]))
 
 
 def test_split_counts_hand_worked():

@@ -21,7 +21,8 @@ LAYERS = [
                             "train.runlog"]),
     ("evaluators", ["evaluators"]),
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
-    ("runs and deployment", ["evaluate", "predict", "predict_settings", "pointcloud",
+    ("runs and deployment", ["evaluate", "predict", "predict_settings", "predict_runner",
+                             "predict_outputs", "predict_video", "pointcloud",
                              "depth_colours", "export", "workflow"]),
     ("command line", ["cli", "cli_commands", "__main__"]),
 ]

@@ -11,10 +11,10 @@ import tifffile
 
 from irdepth_jax import cli
 from irdepth_jax.config import get_config
+from irdepth_jax.data.depth_png import encode_depth
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.depth_colours import BAR_HEIGHT, LABEL_HEIGHT
 from irdepth_jax.models.pipeline import run_pipeline
-from irdepth_jax.predict import depth_png
 
 CFG = get_config("tiny")
 COLOUR_BAR = BAR_HEIGHT + LABEL_HEIGHT
@@ -76,7 +76,7 @@ def test_batched_predict_writes_the_same_pngs_as_batch_1(model, mixed_inputs, tm
         assert np.mean(a == b) > (0.95 if name.endswith("_depth.png") else 0.99), name
     # the PNG holds run_pipeline's depth, round(metres x 256)
     raw = read(mixed_inputs[0] / "f2.png")
-    want = depth_png(np.asarray(run_pipeline(unet, depth, raw[None], CFG)["depth"])[0])
+    want = encode_depth(np.asarray(run_pipeline(unet, depth, raw[None], CFG)["depth"])[0])
     assert np.abs(read(outs[1] / "f2_depth.png").astype(int) - want).max() <= 1
 
 
@@ -112,7 +112,7 @@ def test_video_of_synthetic_frames(model, tmp_path, capsys):
     assert sorted(os.listdir(out)) == [f"{k:04d}_depth.png" for k in range(8)] + ["drive.mp4"]
     result = run_pipeline(unet, depth, np.stack(raws), CFG)
     for k in range(8):
-        want = depth_png(np.asarray(result["depth"])[k])
+        want = encode_depth(np.asarray(result["depth"])[k])
         assert np.abs(read(out / f"{k:04d}_depth.png").astype(int) - want).max() <= 1
     frames = read_video(out / "drive.mp4").astype(np.float64)
     pseudo_rgb = np.asarray(result["rgb"]) * 255

@@ -12,7 +12,7 @@ from trained_runs import QUICK
 from irdepth_jax import cli
 from irdepth_jax.config import STAGE1_MODEL_KEYS
 from irdepth_jax.data.rawio import read_frames
-from irdepth_jax.predict import Predictor
+from irdepth_jax.predict_runner import Predictor
 from irdepth_jax.runs.variables import load_model
 
 

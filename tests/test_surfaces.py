@@ -52,14 +52,14 @@ def model(stage2_run):
 def test_two_predicts_into_one_out_folder(model, tmp_path, capsys, monkeypatch):
     """While run A writes its files (its first write held by a hook), run B into the same
     --out is refused, naming the folder and A's pid; A's files are then all A's."""
-    from irdepth_jax import predict
+    from irdepth_jax import predict, predict_outputs
 
     a, b = write_frames(tmp_path / "a", range(4)), write_frames(tmp_path / "b", range(10, 14))
     solo = tmp_path / "solo"
     assert run(["predict", "--checkpoint", model, "--out", solo, "--no-progress", a], capsys)[0] == 0
 
     writing, go_on = threading.Event(), threading.Event()
-    write_png = predict.write_png
+    write_png = predict_outputs.write_png
 
     def held_write(path, image):
         if not writing.is_set():  # the first write (run A's) waits for run B to have ended
@@ -67,7 +67,7 @@ def test_two_predicts_into_one_out_folder(model, tmp_path, capsys, monkeypatch):
             assert go_on.wait(120)
         write_png(path, image)
 
-    monkeypatch.setattr(predict, "write_png", held_write)
+    monkeypatch.setattr(predict_outputs, "write_png", held_write)
     out, result = tmp_path / "out", {}
     first = threading.Thread(target=lambda: result.update(
         written=predict.predict_files(str(model), [str(a)], str(out)).written))
@@ -447,9 +447,9 @@ def test_a_frame_too_large_for_the_memory_is_refused_before_anything_is_written(
     """An 8000x8000 frame was killed by the kernel after minutes with no message: the compiled
     program's memory (XLA's estimate) is compared with the free memory before any frame runs
     (here the free memory is made 1 MiB), and refused in one line with both figures."""
-    from irdepth_jax import predict
+    from irdepth_jax import predict_runner
 
-    monkeypatch.setattr(predict, "available_bytes", lambda: 2**20)
+    monkeypatch.setattr(predict_runner, "available_bytes", lambda: 2**20)
     frames = write_frames(tmp_path / "in", range(2))
     code, stdout, err = run(["predict", "--checkpoint", model, "--out", tmp_path / "out",
                              "--no-progress", "--batch-size", "2", frames], capsys)
@@ -457,6 +457,6 @@ def test_a_frame_too_large_for_the_memory_is_refused_before_anything_is_written(
     assert code == 2 and "wrote" not in stdout
     assert f"a batch of 2 frames of {HEIGHT}x{WIDTH} needs about" in line and "1 MiB free" in line
     assert "--batch-size 1" in line and not (tmp_path / "out").exists()
-    monkeypatch.setattr(predict, "available_bytes", lambda: 2**40)
+    monkeypatch.setattr(predict_runner, "available_bytes", lambda: 2**40)
     assert run(["predict", "--checkpoint", model, "--out", tmp_path / "out", "--no-progress",
                 frames], capsys)[0] == 0

@@ -34,7 +34,8 @@ DATASET/
   without it the reader opens the depth PNGs when asked for `max_depth()`.
 - Ids are file stems: letters, digits, `_`, `-`, `.` (no path separators).
 - Depth is stored as round(metres * 256) in uint16, so depths from 1/256 m to 255.99 m are exact
-  to 1/512 m; `depth = png / 256`, `valid = png > 0`.
+  to 1/512 m; `depth = png / 256`, `valid = png > 0` (`data.depth_png`, which also says what
+  happens to a depth over 255.99 m).
 - Synthetic datasets (`irdepth synth`) store the LiDAR-like sparse depth in `depth/` (what real
   data provides, used for training and the reported metrics) and the renderer's dense depth
   (sky = 0) in `depth_dense/`.
@@ -55,6 +56,7 @@ import cv2
 import numpy as np
 
 from irdepth_jax.config import IGNORE_LABEL
+from irdepth_jax.data.depth_png import DEPTH_SCALE, decode_depth, encode_depth
 from irdepth_jax.data.rawio import accepted_bits
 from irdepth_jax.fileio import make_dirs, write_bytes, write_png
 from irdepth_jax.imaging.raw import check_raw
@@ -62,8 +64,6 @@ from irdepth_jax.imaging.raw import check_raw
 FORMAT_NAME = "irdepth-folder"
 FORMAT_VERSION = 1
 SPLITS = ("train", "val", "test")
-DEPTH_SCALE = 256.0
-"""uint16 depth PNG counts per metre."""
 MAP_FOLDERS = ("raw14", "ir8", "depth", "seg", "rgb", "depth_dense")
 """The per-frame PNG folders of a dataset."""
 
@@ -109,22 +109,6 @@ def _write_png(path: pathlib.Path, img: np.ndarray) -> None:
     write_png(path, cv2.cvtColor(img, cv2.COLOR_RGB2BGR) if img.ndim == 3 else img)
 
 
-def encode_depth(depth: np.ndarray, valid: np.ndarray | None = None) -> np.ndarray:
-    """(H, W) metres (+ optional bool mask) -> (H, W) uint16 in 1/256 m, 0 = invalid.
-
-    Valid depths round to at least 1 count (so they stay valid). Raises ValueError for valid
-    depths >= 256 m, which the encoding cannot hold.
-    """
-    depth = np.asarray(depth, np.float64)
-    valid = (depth > 0) if valid is None else (np.asarray(valid, bool) & (depth > 0))
-    if valid.any() and depth[valid].max() >= 65535.5 / DEPTH_SCALE:
-        raise ValueError(
-            f"depth up to {depth[valid].max():.2f} m cannot be stored in uint16 / 256 "
-            "(max 255.99 m)")
-    counts = np.clip(np.rint(depth * DEPTH_SCALE), 1, 65535)
-    return np.where(valid, counts, 0).astype(np.uint16)
-
-
 # ----------------------------------------------------------------------------- writer
 
 
@@ -162,7 +146,7 @@ def write_sample(root, sample_id: str, sample: dict, raw_bits: int = 14) -> dict
             f"sample {sid}: raw14 counts must be in 0..{top}, got {raw.min()}..{raw.max()}")
     shape = raw.shape
     maps = {"raw14": raw.astype(np.uint16), "ir8": np.asarray(sample["ir8"])}
-    depth = encode_depth(sample["depth"], sample.get("valid"))
+    depth = encode_depth(sample["depth"], sample.get("valid"), f"sample {sid}")
     maps["depth"] = depth
     labeled = bool(sample.get("labeled", "seg" in sample))
     if labeled and "seg" not in sample:
@@ -173,7 +157,7 @@ def write_sample(root, sample_id: str, sample: dict, raw_bits: int = 14) -> dict
     if has_rgb:
         maps["rgb"] = np.asarray(sample["rgb"])
     if "depth_dense" in sample:
-        maps["depth_dense"] = encode_depth(sample["depth_dense"])
+        maps["depth_dense"] = encode_depth(sample["depth_dense"], name=f"sample {sid} depth_dense")
     for name, want in (("ir8", np.uint8), ("seg", np.uint8), ("rgb", np.uint8)):
         if name in maps and maps[name].dtype != want:
             raise ValueError(
@@ -276,7 +260,7 @@ class FolderDataset:
         r = self.records[i]
         sid = r["id"]
         raw = self.raw(i)
-        depth_counts = self._png("depth", sid, np.uint16, 1)
+        depth, valid = decode_depth(self._png("depth", sid, np.uint16, 1))
         has_rgb = bool(r.get("has_rgb", False))
         hw = (self.height, self.width)
         sample = dict(
@@ -284,8 +268,8 @@ class FolderDataset:
             ir8=self._png("ir8", sid, np.uint8, 1),
             rgb=self._png("rgb", sid, np.uint8, 3) if has_rgb else np.zeros(hw + (3,), np.uint8),
             has_rgb=has_rgb,
-            depth=depth_counts.astype(np.float32) / DEPTH_SCALE,
-            valid=depth_counts > 0,
+            depth=depth,
+            valid=valid,
             seg=(self._png("seg", sid, np.uint8, 1) if r["labeled"]
                  else np.full(hw, IGNORE_LABEL, np.uint8)),
             labeled=bool(r["labeled"]),
@@ -293,8 +277,7 @@ class FolderDataset:
             id=sid,
         )
         if self.with_dense:
-            dense = self._png("depth_dense", sid, np.uint16, 1)
-            sample["depth_dense"] = dense.astype(np.float32) / DEPTH_SCALE
+            sample["depth_dense"] = decode_depth(self._png("depth_dense", sid, np.uint16, 1))[0]
         return sample
 
     def raw(self, i: int) -> np.ndarray:

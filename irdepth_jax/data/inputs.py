@@ -1,5 +1,10 @@
 """The raw thermal files a user names (files and folders), found, read and checked before any
-model runs: what `irdepth predict` takes as input."""
+model runs: what `irdepth predict` takes as input.
+
+Each file is decoded once (`FrameReader`): `thermal_inputs` decodes and checks every file, and
+keeps the decoded frames (up to `KEPT_BYTES`) for the run, which takes them from there
+(`FoundInputs.frames`) in input order.
+"""
 
 from __future__ import annotations
 
@@ -7,12 +12,18 @@ import dataclasses
 import fnmatch
 import os
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+
+import numpy as np
 
 from irdepth_jax.errors import RunError, counted
 
 SKIPPED_NAMES_SHOWN = 8
 """Skipped files named in predict's summary lines (the rest are counted)."""
+KEPT_BYTES = 2**30
+"""Bytes of decoded frames `thermal_inputs` keeps for the run: the frames of the first files,
+up to this size; a file beyond it is decoded again when the run reaches it, so that a long
+sequence is streamed, not held in memory."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -90,6 +101,52 @@ class ThermalInput:
 
 
 @dataclasses.dataclass(frozen=True)
+class Frame:
+    """One raw frame to predict: its input file, output name, counts (H, W) uint16 and output
+    folder (relative to --out)."""
+
+    file: str
+    name: str
+    raw: np.ndarray
+    out_dir: str = ""
+
+
+class FrameReader:
+    """Decodes raw files (`data.rawio.read_frames`, `bits`-bit counts, a ROS bag's `topic`) and
+    keeps what it decoded, up to `kept_bytes` (default `KEPT_BYTES`), until the run takes it:
+    each frame decoded once."""
+
+    def __init__(self, bits: int, topic: str | None = None, kept_bytes: int | None = None):
+        self.bits, self.topic = bits, topic
+        self.kept_bytes = KEPT_BYTES if kept_bytes is None else kept_bytes
+        self._kept: dict[str, list[tuple[str, np.ndarray]]] = {}
+        self._kept_total = 0
+
+    def scan(self, file: str) -> list[tuple[str, tuple[int, int]]]:
+        """[(frame name, (H, W))] of `file`, decoded and checked now (its frames kept when they
+        fit). Raises `data.rawio.RawFileError` / `NotThermalError`."""
+        frames = self._read(file)
+        size = sum(raw.nbytes for _, raw in frames)
+        if self._kept_total + size <= self.kept_bytes:
+            self._kept[file], self._kept_total = frames, self._kept_total + size
+        return [(name, raw.shape) for name, raw in frames]
+
+    def frames(self, sequences: Sequence[ThermalInput]) -> Iterator[Frame]:
+        """The frames of `sequences`, in order: those `scan` kept (handed over once, then
+        released), the others decoded now."""
+        for sequence in sequences:
+            for file in sequence.files:
+                kept = self._kept.pop(file, None)
+                for name, raw in self._read(file) if kept is None else kept:
+                    yield Frame(file, name, raw, sequence.out_dir)
+
+    def _read(self, file: str) -> list[tuple[str, np.ndarray]]:
+        from irdepth_jax.data.rawio import read_frames
+
+        return read_frames(file, self.bits, self.topic)
+
+
+@dataclasses.dataclass(frozen=True)
 class FoundInputs:
     """`thermal_inputs`' answer: the sequences to predict and the files left out."""
 
@@ -99,6 +156,12 @@ class FoundInputs:
     (e.g. counts over 14 bits), in the order read."""
     listed: int
     """How many files the inputs name."""
+    reader: FrameReader = dataclasses.field(compare=False, repr=False)
+    """The reader that decoded them; its frames go to the run (`frames`)."""
+
+    def frames(self, sequences: Sequence[ThermalInput] | None = None) -> Iterator[Frame]:
+        """The frames of `sequences` (default: all of them) in order, each decoded once."""
+        return self.reader.frames(self.sequences if sequences is None else sequences)
 
 
 def is_folder(path: str) -> bool:
@@ -131,8 +194,9 @@ def thermal_inputs(inputs: Sequence[str], bits: int, pattern: str | None = None,
     Raises:
       RunError / `data.rawio.RawFileError` (ValueErrors, one line naming the file).
     """
-    from irdepth_jax.data.rawio import NotThermalError, RawFileError, read_frames
+    from irdepth_jax.data.rawio import NotThermalError, RawFileError
 
+    reader = FrameReader(bits, topic)
     listed = list_inputs(inputs, pattern, recursive)
     not_thermal, unreadable, read = [], [], []
     seen: dict = {}
@@ -146,7 +210,7 @@ def thermal_inputs(inputs: Sequence[str], bits: int, pattern: str | None = None,
                                "file once")
             seen[real] = entry.item
             try:
-                frames.append([(name, raw.shape) for name, raw in read_frames(f, bits, topic)])
+                frames.append(reader.scan(f))
             except NotThermalError as err:
                 if strict or not folder:
                     hint = " (--strict: pick the thermal files with --glob)" if folder else ""
@@ -184,7 +248,8 @@ def thermal_inputs(inputs: Sequence[str], bits: int, pattern: str | None = None,
             shapes[shape] = shapes.get(shape, 0) + 1
         sequences.append(ThermalInput(entry.path, tuple(kept), sum(shapes.values()),
                                       tuple(shapes.items()), out_dir))
-    return FoundInputs(tuple(sequences), tuple(unreadable), sum(len(e.files) for e in listed))
+    return FoundInputs(tuple(sequences), tuple(unreadable), sum(len(e.files) for e in listed),
+                       reader)
 
 
 def _output_folders(read: list) -> list[str]:

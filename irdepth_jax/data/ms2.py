@@ -37,7 +37,8 @@ import warnings
 import numpy as np
 
 from irdepth_jax.config import IGNORE_LABEL, MS2_DEPTH_LABELS
-from irdepth_jax.data.folder import DEPTH_SCALE, DatasetError, DatasetWarning, read_png
+from irdepth_jax.data.depth_png import DEPTH_SCALE, decode_depth
+from irdepth_jax.data.folder import DatasetError, DatasetWarning, read_png
 from irdepth_jax.data.rawio import accepted_bits
 from irdepth_jax.imaging.raw import check_raw
 
@@ -176,9 +177,10 @@ class MS2Dataset:
         if counts.shape != raw.shape:
             raise DatasetError(
                 f"{r['depth_path']}: shape {counts.shape}, thermal frame {raw.shape}")
+        depth, valid = decode_depth(counts)
         return dict(raw14=raw, ir8=np.asarray(camera_like(raw, bits=self.raw_bits), np.uint8),
                     rgb=np.zeros(raw.shape + (3,), np.uint8), has_rgb=False,
-                    depth=counts.astype(np.float32) / DEPTH_SCALE, valid=counts > 0,
+                    depth=depth, valid=valid,
                     seg=np.full(raw.shape, IGNORE_LABEL, np.uint8), labeled=False,
                     condition=r["condition"], id=r["id"])
 
