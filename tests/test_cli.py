@@ -359,7 +359,9 @@ def test_stage2_says_what_it_loaded_from_a_released_checkpoint(data, tmp_path, c
     ckpt = tmp_path / "depth_anything_v2_metric_hypersim_vits.pth"  # an official metric name
     torch.save({k: torch.from_numpy(v) for k, v in to_official_state_dict(params).items()}, ckpt)
     work = tmp_path / "s2"
-    args = ["train", "stage2", "--data", data, "--steps", "1", *QUICK, *BASELINE,
+    # as long as the depth pretraining runs of test_depth_pretraining: the same compiled step
+    # (an image fed from the host, the same decay schedule)
+    args = ["train", "stage2", "--data", data, "--steps", "2", *QUICK, *BASELINE,
             f"depth.checkpoint={ckpt}"]
     code, _, err = run(args + ["--workdir", work], capsys)
     assert code == 0, err

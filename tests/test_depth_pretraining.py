@@ -37,12 +37,14 @@ def test_train_depth_trains_on_the_visible_images(depth_run, capsys):
     assert len(losses) == 2 and all(np.isfinite(losses))
 
 
-def test_train_depth_on_a_blank_image_is_the_pretraining_control(synthetic_data, tmp_path):
+def test_train_depth_on_a_blank_image_is_the_pretraining_control(synthetic_data, depth_run,
+                                                                   tmp_path):
     """stage2.preprocessing=blank: the same training on a constant grey image (the pretraining
-    gate's control), recorded as such."""
+    gate's control), recorded as such. As long as `depth_run`: the same program (an image fed
+    from the host, the same decay schedule), which that run compiled."""
     work = tmp_path / "blank"
     assert cli.main(["train", "depth", "--data", str(synthetic_data), "--workdir", str(work),
-                     "--steps", "1", *QUICK, "stage2.preprocessing=blank"]) == 0
+                     "--steps", "2", *QUICK, "stage2.preprocessing=blank"]) == 0
     with open(work / "config.json") as f:
         assert json.load(f)["stage2"]["preprocessing"] == "blank"
     with open(work / "metrics.jsonl") as f:

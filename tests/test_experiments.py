@@ -497,18 +497,32 @@ def test_the_tables_on_a_users_ms2_dataset(quick_cache, tmp_path):
                                                                            "rainy": 1}
 
 
-def test_the_tables_on_a_users_folder_dataset(synthetic_data, quick_cache, tmp_path):
-    """--data FOLDER: trained on its train split, evaluated on its own test split."""
+def test_the_tables_on_a_users_folder_dataset(quick_results, quick_cache, tmp_path):
+    """--data FOLDER: trained on its train split, evaluated on its own test split. The folder's
+    frames are of the quick tables' size, so that its runs (new ones: other data) take the train
+    steps those tables compiled."""
+    from trained_runs import DATA
+
+    from irdepth_jax.config import get_config
+    from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
+
+    quick_results["table2_multitask_reconstruction"]  # the compiled steps of its quick runs
+    size = get_config("tiny").data
+    folder = write_synthetic_dataset(tmp_path / "folder", **{
+        **DATA, "seed": 5, "height": size.height, "width": size.width}, progress=False)
     script = load_script("table2_multitask_reconstruction")
-    record = script.main(script.TABLE, ["--quick", "--data", str(synthetic_data), "--cache",
-                                        quick_cache, "--out", str(tmp_path), "--no-progress"])
+    record = script.main(script.TABLE, ["--quick", "--data", str(folder), "--cache",
+                                        quick_cache, "--out", str(tmp_path / "out"), "--no-progress"])
     assert record["synthetic"] is False and record["data"]["format"] == "folder"
     assert record["protocol"] == {"name": "folder", "stride": 1, "align": None}
-    assert record["eval_data"]["path"] == str(synthetic_data)
+    assert record["eval_data"]["path"] == str(folder)
+    runs = {r["per_seed"]["0"]["run"] for r in record["rows"]}
+    assert not runs & {r["per_seed"]["0"]["run"] for r in quick_results[
+        "table2_multitask_reconstruction"][0]["rows"]}  # trained on the folder: runs of their own
     test_frames = sum(r["split"] == "test" for r in
-                      json.loads((synthetic_data / "manifest.json").read_text())["frames"])
+                      json.loads((folder / "manifest.json").read_text())["frames"])
     assert all(r["per_seed"]["0"]["count"] == test_frames for r in record["rows"])
-    assert "SYNTHETIC" not in (tmp_path / "results.md").read_text()
+    assert "SYNTHETIC" not in (tmp_path / "out" / "results.md").read_text()
 
 
 @pytest.mark.slow

@@ -177,8 +177,9 @@ def test_predict_says_what_an_interrupted_video_kept(model, tmp_path, capsys, mo
     monkeypatch.setattr(video, "VideoWriter", hooked_writer(lose_first_packets(interrupt=True)))
     drive = write_frames(tmp_path / "drive", range(48))
     out = tmp_path / "out"
+    # the default batch size: the program the other predicts here compiled
     code, stdout, err = run(["predict", "--checkpoint", model, "--out", out, "--video",
-                             "--batch-size", 8, "--no-progress", drive], capsys)
+                             "--no-progress", drive], capsys)
     assert code == cli.EXIT_INTERRUPTED and "wrote" not in stdout
     assert "frames encoded before Ctrl-C do not decode as a video; nothing kept" in err, err
     assert "holds" not in err and os.listdir(out) == []
