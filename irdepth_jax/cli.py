@@ -3,8 +3,10 @@
 Every error a user can cause (unknown config key, a directory that is not a dataset, a
 checkpoint of another stage or shape, an 8-bit file given to predict, a workdir that already
 holds a run) is printed as one line ``irdepth: error: ...`` with exit code 2, before anything is
-written. Ctrl-C during training saves a checkpoint and exits with code 130. `irdepth predict`
-exits with code 1 when it skipped input files it could not read (the others are written). Set IRDEPTH_DEBUG=1 to
+written. Only the package's own errors (`irdepth_jax.errors.IrdepthError` and its subclasses)
+are reported so; any other exception is a bug and ends with its traceback. Ctrl-C during
+training saves a checkpoint and exits with code 130. `irdepth predict` exits with code 1 when
+it skipped input files it could not read (the others are written). Set IRDEPTH_DEBUG=1 to
 get the traceback instead of the one-line message.
 
 This module is the parser (`build_parser`) and the entry point (`main`); the commands are
@@ -359,6 +361,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for add in (_add_synth, _add_train, _add_eval, _add_predict, _add_export, _add_quickstart):
         add(sub)
+    for command in sub.choices.values():  # how the library's errors name options (errors.py)
+        command.set_defaults(flags={a.dest: a.option_strings[-1] for a in command._actions
+                                    if a.option_strings})
     return parser
 
 
@@ -378,25 +383,22 @@ def main(argv: list[str] | None = None) -> int:
     except CliError as err:
         print(f"irdepth: error: {err}", file=sys.stderr)
         return EXIT_USAGE
-    from irdepth_jax.data.folder import DatasetError
-    from irdepth_jax.errors import Interrupted, RunError
-    from irdepth_jax.runs.checkpoint import CheckpointError
+    from irdepth_jax.errors import Interrupted, IrdepthError, one_line, with_flags
 
     try:
         _setup_jax(args)
         with _one_line_warnings():
             return args.func(args)
     except Interrupted as stop:
-        print(f"irdepth: {stop}", file=sys.stderr)
+        print(f"irdepth: {with_flags(str(stop), args.flags)}", file=sys.stderr)
         return EXIT_INTERRUPTED
     except KeyboardInterrupt:
         print("irdepth: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
-    except (CliError, RunError, CheckpointError, DatasetError, ValueError) as err:
+    except IrdepthError as err:  # the package's own errors; anything else is a bug: traceback
         if os.environ.get("IRDEPTH_DEBUG"):
             raise
-        message = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        print(f"irdepth: error: {message}", file=sys.stderr)
+        print(f"irdepth: error: {with_flags(one_line(err), args.flags)}", file=sys.stderr)
         return EXIT_USAGE
 
 

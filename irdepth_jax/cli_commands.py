@@ -10,10 +10,10 @@ import os
 import sys
 import time
 
-from irdepth_jax.errors import counted
+from irdepth_jax.errors import IrdepthError, counted
 
 
-class CliError(Exception):
+class CliError(IrdepthError):
     """A one-line user error."""
 
 

@@ -68,3 +68,41 @@ def test_synth_defaults_fit_any_n(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.strip() == f"irdepth: error: {message}", err
     assert not (tmp_path / "e").exists()
+
+
+def test_a_bad_config_value_is_one_line_naming_the_key(tmp_path, capsys):
+    """A value outside a key's set is refused before anything is written, naming the key and
+    the values it takes, exit code 2."""
+    from irdepth_jax import cli
+
+    work = tmp_path / "w"
+    code = cli.main(["train", "stage1", "--data", str(tmp_path), "--workdir", str(work),
+                     "stage2.hue_mode=hsv"])
+    assert code == 2
+    assert capsys.readouterr().err == ("irdepth: error: stage2.hue_mode='hsv': choose one of soft, "
+                                       "argmax, constant\n")
+    assert not work.exists()
+
+
+def test_a_bug_is_not_reported_as_a_usage_error(tmp_path, capsys, monkeypatch):
+    """Only the package's own errors are one-line usage errors: a plain ValueError raised inside
+    the library (a bug) propagates with its traceback."""
+    from irdepth_jax import cli, config
+
+    def planted(*args, **kwargs):
+        raise ValueError("planted bug")
+
+    monkeypatch.setattr(config, "apply_overrides", planted)
+    with pytest.raises(ValueError, match="planted bug"):
+        cli.main(["train", "stage1", "--data", str(tmp_path), "--workdir", str(tmp_path / "w")])
+    assert "irdepth: error" not in capsys.readouterr().err
+
+
+def test_library_errors_name_options_the_cli_shows_as_flags():
+    from irdepth_jax.cli import build_parser
+    from irdepth_jax.errors import with_flags
+
+    args = build_parser().parse_args(["train", "stage2", "--data", "d", "--workdir", "w"])
+    message = "`stage1_checkpoint` x: no; pass `resume_or_start` or `resume` (`nothing`)"
+    assert with_flags(message, args.flags) == ("--stage1-checkpoint x: no; pass --resume-or-start "
+                                               "or --resume (`nothing`)")
