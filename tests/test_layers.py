@@ -23,7 +23,7 @@ LAYERS = [
     ("training loops", ["train.phase", "train.validate", "train.stages"]),
     ("runs and deployment", ["evaluate", "predict", "predict_settings", "pointcloud",
                              "depth_colours", "export", "workflow"]),
-    ("command line", ["cli", "cli_commands", "__main__"]),
+    ("command line", ["cli", "__main__"]),
 ]
 
 
