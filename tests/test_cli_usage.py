@@ -106,3 +106,31 @@ def test_library_errors_name_options_the_cli_shows_as_flags():
     message = "`stage1_checkpoint` x: no; pass `resume_or_start` or `resume` (`nothing`)"
     assert with_flags(message, args.flags) == ("--stage1-checkpoint x: no; pass --resume-or-start "
                                                "or --resume (`nothing`)")
+
+
+FLAGS_STILL_NAMED = {"predict.py", "data/inputs.py", "data/rosbag.py", "imaging/raw.py"}
+"""Modules whose messages still name predict's flags: predict prints them itself as skip lines,
+not through `cli.main`, which writes the library's `name`s as flags."""
+
+
+def test_library_messages_name_options_not_flags():
+    """Outside the CLI, a message names an option as `name` (errors.py), never as --flag (the
+    strings of the package's modules but docstrings, which may say which flag uses a function;
+    a compiler's --version is no flag of ours)."""
+    import ast
+    import pathlib
+    import re
+
+    package = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
+    flag = re.compile(r"(^|[\s(])--[a-z]")
+    found = []
+    for path in sorted(package.rglob("*.py")):
+        name = path.relative_to(package).as_posix()
+        if name.startswith("cli/") or name in FLAGS_STILL_NAMED:
+            continue
+        tree = ast.parse(path.read_text())
+        docstrings = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr)}
+        found += [f"{name}:{c.lineno}: {c.value}" for c in ast.walk(tree)
+                  if isinstance(c, ast.Constant) and isinstance(c.value, str)
+                  and id(c) not in docstrings and flag.search(c.value) and c.value != "--version"]
+    assert not found, found
