@@ -134,3 +134,11 @@ def test_library_messages_name_options_not_flags():
                   if isinstance(c, ast.Constant) and isinstance(c.value, str)
                   and id(c) not in docstrings and flag.search(c.value) and c.value != "--version"]
     assert not found, found
+
+
+def test_quickstart_refuses_a_used_workdir_before_jax(tmp_path):
+    (tmp_path / "mine.txt").write_text("keep me")
+    out, err, _ = irdepth("quickstart", "--workdir", tmp_path)
+    assert out == "jax not imported 2", (out, err)
+    assert err == f"irdepth: error: --workdir {tmp_path} exists and is not empty; choose another directory"
+    assert os.listdir(tmp_path) == ["mine.txt"]

@@ -8,7 +8,9 @@ from irdepth_jax.cli.common import CliError, checked_overrides, compile_cache_fl
 
 
 def check(args) -> None:
-    """Nothing to check before the command runs."""
+    """CliError when --workdir holds files (the quickstart writes a new directory)."""
+    if os.path.isdir(args.workdir) and os.listdir(args.workdir):
+        raise CliError(f"--workdir {args.workdir} exists and is not empty; choose another directory")
 
 
 def add_parser(sub) -> None:
@@ -37,8 +39,6 @@ def run(args) -> int:
     from irdepth_jax.workflow import improvement_lines, train_and_evaluate
 
     work = args.workdir
-    if os.path.isdir(work) and os.listdir(work):
-        raise CliError(f"--workdir {work} exists and is not empty; choose another directory")
     cfg = load_config(args.preset, None, checked_overrides(args.overrides))
     result = train_and_evaluate(cfg, work, devices=args.devices, progress=not args.no_progress)
     print(result["tables"])
