@@ -234,9 +234,9 @@ def field_options(annotation: typing.Any) -> tuple[tuple, tuple]:
     return (), (annotation,)
 
 
-def show_value(value: typing.Any) -> str:
-    """A setting as it is written in an override: true / false / none, numbers and words bare."""
-    return "none" if value is None else str(value).lower() if isinstance(value, bool) else str(value)
+def _shown(value: typing.Any) -> str:
+    """A `Literal` value as an override writes it: true / false, numbers and words bare."""
+    return str(value).lower() if isinstance(value, bool) else str(value)
 
 
 _TYPE_WORDS = {bool: "true or false", int: "an integer", float: "a number", str: "a string",
@@ -261,7 +261,7 @@ def _check_value(key: str, value: typing.Any, annotation: typing.Any) -> None:
         return
     if any(_is_instance(value, k) for k in kinds):
         return
-    allowed = [show_value(v) for v in literals] + [
+    allowed = [_shown(v) for v in literals] + [
         _TYPE_WORDS.get(k, "a tuple of integers like (1, 2)") for k in kinds]
     what = (f"choose one of {', '.join(allowed)}" if literals and len(allowed) > 1
             else f"expected {' or '.join(allowed)}")
