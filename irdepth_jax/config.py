@@ -25,6 +25,7 @@ from __future__ import annotations
 import ast
 import dataclasses
 import re
+import typing
 import warnings
 from typing import Any
 
@@ -35,7 +36,10 @@ from irdepth_jax.config_schema import (
     Stage1Config,
     Stage2Config,
     UNetConfig,
+    field_options,
+    field_type,
 )
+from irdepth_jax.errors import ConfigError
 
 CLASS_NAMES: tuple[str, ...] = ("sky", "building", "car", "bicycle", "road", "tree")
 """Semantic classes of the paper, in label order (label 255 = unlabelled)."""
@@ -58,6 +62,12 @@ RENAMED_KEYS: dict[str, str] = {
 }
 """Old dotted config key -> its new name."""
 
+RETYPED_VALUES: dict[str, dict[Any, Any]] = {
+    "depth.load_head": {"true": True, "false": False},
+}
+"""Dotted config key -> {old value: its value now}, for the configs stored by runs and
+checkpoints written before the key became typed (`upgrade_dict`)."""
+
 
 class DeprecatedKeyWarning(FutureWarning):
     """A config key was given under its old name (`RENAMED_KEYS`); it is used as the new one."""
@@ -76,10 +86,11 @@ def current_key(key: str, where: str = "override") -> str:
 
 def upgrade_dict(d: dict, where: str | None = None) -> dict:
     """A nested config dict (`to_dict`'s form, possibly partial) with the keys of old names
-    (`RENAMED_KEYS`) moved to the new ones; a `DeprecatedKeyWarning` for each when `where` (the
+    (`RENAMED_KEYS`) moved to the new ones and values of an old form (`RETYPED_VALUES`) in
+    their new one; a `DeprecatedKeyWarning` for each when `where` (the
     file it came from) is given, silent otherwise (a config stored by an older version).
 
-    Raises ValueError when a key is given under both names.
+    Raises ConfigError when a key is given under both names.
     """
     out = {k: dict(v) if isinstance(v, dict) else v for k, v in d.items()}
     for old, new in RENAMED_KEYS.items():
@@ -88,11 +99,16 @@ def upgrade_dict(d: dict, where: str | None = None) -> dict:
         if not isinstance(section, dict) or old_name not in section:
             continue
         if new_name in out.get(new_section, {}):
-            raise ValueError(f"config key {old!r} is the old name of {new!r}; give only {new!r}")
+            raise ConfigError(f"config key {old!r} is the old name of {new!r}; give only {new!r}")
         if where is not None:
             warnings.warn(f"{where}: config key {old!r} is deprecated, use {new!r} (same "
                           "meaning)", DeprecatedKeyWarning, stacklevel=2)
         out.setdefault(new_section, {})[new_name] = section.pop(old_name)
+    for key, values in RETYPED_VALUES.items():
+        section_name, name = key.split(".")
+        section = out.get(section_name)
+        if isinstance(section, dict) and isinstance(section.get(name), str):
+            section[name] = values.get(section[name].lower(), section[name])
     return out
 
 
@@ -115,13 +131,13 @@ def available_presets() -> tuple[str, ...]:
 def get_config(preset: str = "paper") -> Config:
     """Returns a fresh `Config` for a preset name: `irdepth_jax.configs.<preset>.get_config()`.
 
-    Raises ValueError listing the available presets for an unknown name.
+    Raises ConfigError listing the available presets for an unknown name.
     """
     import importlib
 
     names = available_presets()
     if preset not in names:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {list(names)}")
+        raise ConfigError(f"unknown preset {preset!r}; choose one of {list(names)}")
     cfg = importlib.import_module(f"irdepth_jax.configs.{preset}").get_config()
     if not isinstance(cfg, Config):
         raise TypeError(f"irdepth_jax/configs/{preset}.py: get_config() returned "
@@ -129,60 +145,58 @@ def get_config(preset: str = "paper") -> Config:
     return cfg
 
 
-_TYPE_EXAMPLES = {"bool": False, "int": 0, "float": 0.0, "str": ""}
-"""A value of each annotated type, standing in for an optional field's current None."""
+_TRUE_WORDS, _FALSE_WORDS = ("1", "true", "yes", "on"), ("0", "false", "no", "off")
 
 
-def _parse_value(text: str, current: Any, key: str, types: tuple[str, ...] = ()) -> Any:
-    """Parses an override value to the type of the field it replaces: the type of its current
-    value, or, while that is None, the first type of its annotation `types` (e.g. ('int',
-    'None') for ``int | None``)."""
+def _parse_literal(text: str, literals: tuple) -> Any:
+    """The value of `literals` (a `Literal` field's) that override text names, or `text` itself
+    (which the config then refuses, listing the values)."""
+    word = text.strip()
+    for value in literals:
+        if isinstance(value, bool):
+            if word.lower() in (_TRUE_WORDS if value else _FALSE_WORDS):
+                return value
+        elif word == str(value):
+            return value
+    return word
+
+
+def _parse_typed(text: str, key: str, kinds: tuple) -> Any:
+    """Parses an override value to the first of the field's types `kinds` (e.g. (int,
+    NoneType) for ``int | None``) that reads it; ConfigError naming the key when none does."""
     lowered = text.strip().lower()
-    if lowered in ("none", "null"):
+    if lowered in ("none", "null") and type(None) in kinds:
         return None
-    if current is None:
-        current = next((_TYPE_EXAMPLES[t] for t in types if t in _TYPE_EXAMPLES), None)
-    or_none = " (or none)" if "None" in types else ""
-    if isinstance(current, bool):
-        if lowered in ("1", "true", "yes", "on"):
-            return True
-        if lowered in ("0", "false", "no", "off"):
-            return False
-        raise ValueError(f"config key {key!r} expects true/false{or_none}, got {text!r}")
-    if isinstance(current, int) and not isinstance(current, bool):
+    kind = next((k for k in kinds if k is not type(None)), str)
+    or_none = " (or none)" if type(None) in kinds else ""
+    if kind is bool:
+        if lowered in _TRUE_WORDS or lowered in _FALSE_WORDS:
+            return lowered in _TRUE_WORDS
+        raise ConfigError(f"config key {key!r} expects true/false{or_none}, got {text!r}")
+    if kind in (int, float):
         try:
-            return int(text)
+            return kind(text)
         except ValueError:
-            raise ValueError(f"config key {key!r} expects an integer{or_none}, got {text!r}"
-                             ) from None
-    if isinstance(current, float):
-        try:
-            return float(text)
-        except ValueError:
-            raise ValueError(f"config key {key!r} expects a number{or_none}, got {text!r}"
-                             ) from None
-    if isinstance(current, tuple):
+            what = "an integer" if kind is int else "a number"
+            raise ConfigError(f"config key {key!r} expects {what}{or_none}, got {text!r}") from None
+    if typing.get_origin(kind) is tuple:
         try:
             value = ast.literal_eval(text)
         except (ValueError, SyntaxError):
-            raise ValueError(f"config key {key!r} expects a tuple like (1, 2), got {text!r}") from None
+            raise ConfigError(f"config key {key!r} expects a tuple like (1, 2), got {text!r}") from None
         return tuple(value) if isinstance(value, (list, tuple)) else (value,)
-    if current is None:  # optional field: guess from the text
-        try:
-            return ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            return text
     return text
 
 
 def apply_overrides(cfg: Config, overrides: list[str] | tuple[str, ...]) -> Config:
     """Returns `cfg` with `section.key=value` (or top-level `key=value`) overrides applied.
 
-    Raises ValueError naming the key for an unknown key, a malformed item or a bad value.
+    Raises ConfigError naming the key for an unknown key, a malformed item or a bad value
+    (a value outside a `Literal` field's set: naming the values it allows).
     """
     for item in overrides:
         if "=" not in item:
-            raise ValueError(f"override {item!r} is not of the form key=value")
+            raise ConfigError(f"override {item!r} is not of the form key=value")
         key, text = item.split("=", 1)
         key = current_key(key.strip(), f"override {item!r}")
         parts = key.split(".")
@@ -192,12 +206,12 @@ def apply_overrides(cfg: Config, overrides: list[str] | tuple[str, ...]) -> Conf
             section_name, field_name = parts
             section = _get_field(cfg, section_name, key)
             if not dataclasses.is_dataclass(section):
-                raise ValueError(f"unknown config key {key!r}")
+                raise ConfigError(f"unknown config key {key!r}")
             cfg = dataclasses.replace(
                 cfg, **{section_name: _replace_field(section, field_name, text, key)}
             )
         else:
-            raise ValueError(f"unknown config key {key!r}")
+            raise ConfigError(f"unknown config key {key!r}")
     return cfg
 
 
@@ -210,24 +224,15 @@ def override_keys(overrides: list[str] | tuple[str, ...]) -> set[str]:
 def _get_field(obj: Any, name: str, key: str) -> Any:
     names = {f.name for f in dataclasses.fields(obj)}
     if name not in names:
-        raise ValueError(f"unknown config key {key!r}; known here: {', '.join(sorted(names))}")
+        raise ConfigError(f"unknown config key {key!r}; known here: {', '.join(sorted(names))}")
     return getattr(obj, name)
 
 
 def _replace_field(obj: Any, name: str, text: str, key: str) -> Any:
-    current = _get_field(obj, name, key)
-    if dataclasses.is_dataclass(current):
-        raise ValueError(f"config key {key!r} is a section; set one of its fields")
-    types = str({f.name: f.type for f in dataclasses.fields(obj)}[name]).split(" | ")
-    try:
-        value = _parse_value(text, current, key, tuple(types))
-    except ValueError:
-        # a field annotated `int | str` (e.g. data.raw_bits = 14 | 16 | 'auto') takes words too
-        if "str" not in types:
-            raise
-        value = text.strip()
-    if value is None and "None" not in types:  # 'none' is a word for a plain str field
-        value = text.strip()
+    if dataclasses.is_dataclass(_get_field(obj, name, key)):
+        raise ConfigError(f"config key {key!r} is a section; set one of its fields")
+    literals, kinds = field_options(field_type(type(obj), name))
+    value = _parse_literal(text, literals) if literals else _parse_typed(text, key, kinds)
     return dataclasses.replace(obj, **{name: value})
 
 
@@ -238,7 +243,8 @@ def to_dict(cfg: Config) -> dict:
 
 def from_dict(d: dict) -> Config:
     """Inverse of `to_dict`; keys of old names are mapped (`upgrade_dict`: a config stored by an
-    older version), unknown keys raise ValueError."""
+    older version; values of an old form too, `RETYPED_VALUES`), unknown keys or values that
+    are not allowed raise ConfigError."""
     d = upgrade_dict(d)
     sections = {
         "unet": UNetConfig,
@@ -254,13 +260,13 @@ def from_dict(d: dict) -> Config:
             known = {f.name: f for f in dataclasses.fields(cls)}
             unknown = set(value) - set(known)
             if unknown:
-                raise ValueError(f"unknown config keys in {key!r}: {sorted(unknown)}")
+                raise ConfigError(f"unknown config keys in {key!r}: {sorted(unknown)}")
             value = {k: tuple(v) if isinstance(v, list) else v for k, v in value.items()}
             kwargs[key] = cls(**value)
         elif key in {f.name for f in dataclasses.fields(Config)}:
             kwargs[key] = value
         else:
-            raise ValueError(f"unknown config key {key!r}")
+            raise ConfigError(f"unknown config key {key!r}")
     return Config(**kwargs)
 
 
@@ -295,6 +301,6 @@ def resolved_raw_bits(cfg: Config) -> int:
     """`cfg.data.raw_bits` as 14 or 16; 'auto' must have been resolved from the data first."""
     bits = cfg.data.raw_bits
     if bits not in (14, 16):
-        raise ValueError(f"data.raw_bits {bits!r}: expected 14 or 16 ('auto' is resolved from "
+        raise ConfigError(f"data.raw_bits {bits!r}: expected 14 or 16 ('auto' is resolved from "
                          "the training frames when a run starts)")
     return int(bits)

@@ -79,7 +79,7 @@ def depth_colours(spec: str | None, max_depth: float, relative: bool,
     from matplotlib import colormaps
 
     if cmap not in colormaps:
-        raise RunError(f"--cmap {cmap}: not a matplotlib colour map (e.g. turbo, viridis, "
+        raise RunError(f"`cmap` {cmap}: not a matplotlib colour map (e.g. turbo, viridis, "
                        "magma, inferno, plasma)")
     if spec is None:
         spec = "auto" if relative else f"0:{max_depth}"
@@ -90,5 +90,5 @@ def depth_colours(spec: str | None, max_depth: float, relative: bool,
     except ValueError:
         low = high = float("nan")
     if not (np.isfinite(low) and np.isfinite(high) and 0 <= low < high):
-        raise RunError(f"--depth-range {spec}: expected auto or MIN:MAX with 0 <= MIN < MAX")
+        raise RunError(f"`depth_range` {spec}: expected auto or MIN:MAX with 0 <= MIN < MAX")
     return DepthColours(low, high, cmap, relative)

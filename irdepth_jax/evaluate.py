@@ -57,7 +57,7 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
     source = DataSource(data, fmt, strict=strict, raw_bits=cfg.data.raw_bits, depth_label=gt)
     dataset, indices = source.frames(split, stride=stride)
     if len(indices) == 0:
-        raise RunError(f"--data {data}: split {split!r} has no frames")
+        raise RunError(f"`data` {data}: split {split!r} has no frames")
     described = source.describe(split)
     dp = dp or DataParallel("single")
     result: dict[str, Any] = {
@@ -100,7 +100,7 @@ def depth_alignment(path: str, cfg, has_depth: bool, align: str | None) -> str |
         return "median" if relative else None
     if relative and align in (None, "none"):
         raise RunError(f"{path}: a relative-depth model (depth.metric=false) predicts depth up "
-                       "to an unknown scale; evaluate it with --align median or scale_shift")
+                       "to an unknown scale; evaluate it with `align` median or scale_shift")
     return None if align == "none" else align
 
 

@@ -33,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from irdepth_jax.config import CLASS_NAMES, STAGE1_IMAGES, Config, resolved_raw_bits, to_dict
+from irdepth_jax.errors import IrdepthError
 from irdepth_jax.fileio import make_dirs, write_bytes
 from irdepth_jax.models.pipeline import raw_to_depth
 
@@ -47,7 +48,7 @@ _INLINE = {"jit", "pjit", "closed_call", "custom_jvp_call", "custom_vjp_call"}
 """Primitives whose sub-jaxpr `_fold` inlines (their primal computation; the rest is autodiff)."""
 
 
-class ExportError(ValueError):
+class ExportError(IrdepthError, ValueError):
     """A one-line export error (the CLI prints it as ``irdepth: error: ...``)."""
 
 
@@ -61,11 +62,11 @@ def depth_function(cfg: Config, model: dict, checkpoint: str) -> Callable[[jax.A
     `model` (`evaluate.load_model`) closed over. ExportError naming `checkpoint` for a model
     that is not a HSV Stage II model."""
     if model["depth"] is None:
-        raise ExportError(f"--checkpoint {checkpoint}: a Stage I model; export needs a Stage II "
+        raise ExportError(f"`checkpoint` {checkpoint}: a Stage I model; export needs a Stage II "
                           "(depth) checkpoint")
     if cfg.stage2.preprocessing not in STAGE1_IMAGES:
         raise ExportError(
-            f"--checkpoint {checkpoint}: stage2.preprocessing={cfg.stage2.preprocessing}: its "
+            f"`checkpoint` {checkpoint}: stage2.preprocessing={cfg.stage2.preprocessing}: its "
             "input image is made on the host (NumPy / OpenCV, or a visible camera), not by a JAX "
             f"function; only models whose input the Stage I model makes (stage2.preprocessing="
             f"{' or '.join(STAGE1_IMAGES)}) can be exported")
@@ -94,9 +95,9 @@ def sample_frames(shape: tuple[int, int, int], bits: int, path: str | None = Non
         frames = []
         for name, frame in read_frames(path, bits):
             if frame.shape != (height, width):
-                raise ExportError(f"--sample {path}: frame {name!r} is {frame.shape[0]}x"
+                raise ExportError(f"`sample` {path}: frame {name!r} is {frame.shape[0]}x"
                                   f"{frame.shape[1]}, the export is {height}x{width} "
-                                  "(--height / --width)")
+                                  "(`height` / `width`)")
             frames.append(frame)
     return np.stack([frames[k % len(frames)] for k in range(n)])
 
@@ -153,7 +154,7 @@ def onnx_bytes(fn: Callable, shape: Sequence[int]) -> bytes:
     try:
         from jax2onnx import to_onnx
     except ImportError:
-        raise ExportError("--format onnx needs jax2onnx and onnxruntime: pip install "
+        raise ExportError("`format` onnx needs jax2onnx and onnxruntime: pip install "
                           "'irdepth_jax[export]'") from None
     spec = jax.ShapeDtypeStruct(tuple(shape), jnp.uint16)
     quiet = [logging.getLogger(name) for name in ("onnx_ir", "jax2onnx")]
@@ -164,14 +165,14 @@ def onnx_bytes(fn: Callable, shape: Sequence[int]) -> bytes:
         model = to_onnx(_fold(fn, spec), [spec], model_name="irdepth_raw_to_depth",
                         opset=ONNX_OPSET, input_names=["raw"], output_names=["depth"])
     except Exception as err:  # noqa: BLE001 - the converter's failure, as one line
-        raise ExportError(f"--format onnx: jax2onnx failed: {_one_line(err)}") from None
+        raise ExportError(f"`format` onnx: jax2onnx failed: {_one_line(err)}") from None
     finally:
         for log, level in zip(quiet, levels):
             log.setLevel(level)
     drop_unused_initializers(model.graph)
     if model.ByteSize() > ONNX_MAX_BYTES:
-        raise ExportError(f"--format onnx: the model is {model.ByteSize() / 2**30:.1f} GB, over "
-                          "the 2 GB of one ONNX file; use --format stablehlo")
+        raise ExportError(f"`format` onnx: the model is {model.ByteSize() / 2**30:.1f} GB, over "
+                          "the 2 GB of one ONNX file; use `format` stablehlo")
     return model.SerializeToString()
 
 
@@ -241,18 +242,18 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
     from irdepth_jax.runs.variables import load_model
 
     if fmt not in FORMATS:
-        raise ExportError(f"--format {fmt}: choose one of {', '.join(FORMATS)}")
-    for flag, value in (("--height", height), ("--width", width), ("--batch", batch)):
+        raise ExportError(f"`format` {fmt}: choose one of {', '.join(FORMATS)}")
+    for name, value in (("height", height), ("width", width), ("batch", batch)):
         if value < 1:
-            raise ExportError(f"{flag} {value}: must be at least 1")
+            raise ExportError(f"`{name}` {value}: must be at least 1")
     if os.path.isdir(out):
-        raise ExportError(f"--out {out}: is a directory (expected the artifact's file name)")
+        raise ExportError(f"`out` {out}: is a directory (expected the artifact's file name)")
     cfg, _, model = load_model(checkpoint)
     fn = depth_function(cfg, model, checkpoint)
     if fmt == "onnx" and cfg.depth.dtype != "float32":
-        raise ExportError(f"--format onnx: --checkpoint {checkpoint} computes in "
+        raise ExportError(f"`format` onnx: `checkpoint` {checkpoint} computes in "
                           f"depth.dtype={cfg.depth.dtype}, which onnxruntime's CPU kernels "
-                          "(Einsum) do not take; use --format stablehlo")
+                          "(Einsum) do not take; use `format` stablehlo")
     bits = resolved_raw_bits(cfg)
     shape = (batch, height, width)
     raw = sample_frames(shape, bits, sample)
@@ -260,13 +261,13 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
     try:
         depth = run_artifact(fmt, data, raw)
     except Exception as err:  # noqa: BLE001 - the runtime's refusal, as one line
-        raise ExportError(f"--format {fmt}: the exported model does not run: "
+        raise ExportError(f"`format` {fmt}: the exported model does not run: "
                           f"{_one_line(err)}") from None
     diff = float(np.max(np.abs(depth - np.asarray(fn(raw)))))
     max_depth = float(cfg.depth.max_depth)
     tolerance = TOLERANCE * max_depth
     if not diff <= tolerance:
-        raise ExportError(f"--format {fmt}: the exported model differs from the JAX pipeline by "
+        raise ExportError(f"`format` {fmt}: the exported model differs from the JAX pipeline by "
                           f"{diff:.3g} m on the sample frames (tolerance {tolerance:.3g} m = "
                           f"{TOLERANCE:g} x max depth); nothing written")
     meta = {

@@ -21,10 +21,12 @@ import uuid
 
 import numpy as np
 
+from irdepth_jax.errors import IrdepthError
+
 FULL_DISK_ERRNOS = (errno.ENOSPC, errno.EDQUOT)
 
 
-class WriteError(OSError, ValueError):
+class WriteError(IrdepthError, OSError, ValueError):
     """An output file that could not be written (one-line message naming it); nothing partial
     is left under its name. A ValueError too, so the CLI reports it as a one-line error."""
 

@@ -39,7 +39,7 @@ def parse_intrinsics(spec: str) -> Intrinsics:
     except ValueError:
         values = []
     if len(values) != 4 or not all(np.isfinite(values)) or values[0] <= 0 or values[1] <= 0:
-        raise RunError(f"--intrinsics {spec}: expected fx,fy,cx,cy in pixels (fx, fy > 0) or a "
+        raise RunError(f"`intrinsics` {spec}: expected fx,fy,cx,cy in pixels (fx, fy > 0) or a "
                        "calibration file (MS2's calib.npy, or a .npy 3x3 matrix)")
     return Intrinsics(*values)
 
@@ -48,17 +48,17 @@ def _from_file(path: str) -> Intrinsics:
     try:
         loaded = np.load(path, allow_pickle=True)
     except (ValueError, OSError) as err:
-        raise RunError(f"--intrinsics {path}: not a readable .npy file ({err})") from None
+        raise RunError(f"`intrinsics` {path}: not a readable .npy file ({err})") from None
     if loaded.dtype == object and loaded.shape == ():  # MS2: a dict of matrices
         calib = loaded.item()
         if not isinstance(calib, dict) or MS2_THERMAL_KEY not in calib:
             keys = sorted(calib) if isinstance(calib, dict) else type(calib).__name__
-            raise RunError(f"--intrinsics {path}: no {MS2_THERMAL_KEY} (the thermal camera's "
+            raise RunError(f"`intrinsics` {path}: no {MS2_THERMAL_KEY} (the thermal camera's "
                            f"matrix) in it; it holds {keys}")
         loaded = calib[MS2_THERMAL_KEY]
     matrix = np.asarray(loaded, np.float64)
     if matrix.shape != (3, 3):
-        raise RunError(f"--intrinsics {path}: a {matrix.shape} array, expected a 3x3 intrinsic "
+        raise RunError(f"`intrinsics` {path}: a {matrix.shape} array, expected a 3x3 intrinsic "
                        "matrix")
     return Intrinsics(matrix[0, 0], matrix[1, 1], matrix[0, 2], matrix[1, 2])
 

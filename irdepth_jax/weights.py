@@ -32,6 +32,7 @@ import dataclasses
 import json
 import os
 import re
+import typing
 from collections.abc import Mapping
 
 import flax.serialization
@@ -40,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import traverse_util
 
+from irdepth_jax.config_schema import CheckpointKind
 from irdepth_jax.models.depth_anything import (
     ENCODERS,
     DepthAnythingConfig,
@@ -49,7 +51,7 @@ from irdepth_jax.models.depth_anything import (
 
 _RELATIVE_NAME = re.compile(r"^depth_anything_v2_vit[sblg]\.pth$")
 _METRIC_NAME_MAX_DEPTH = {"hypersim": 20.0, "vkitti": 80.0}  # metric_depth/README.md, dist_train.sh
-CHECKPOINT_KINDS = ("auto", "metric", "relative")
+CHECKPOINT_KINDS = typing.get_args(CheckpointKind)
 _UNUSED = re.compile(r"^(pretrained\.mask_token|depth_head\.scratch\.refinenet4\.resConfUnit1\..*)$")
 _CONV_TRANSPOSE = re.compile(r"^depth_head\.resize_layers\.[01]\.weight$")
 

@@ -16,6 +16,7 @@ import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
 
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
+from irdepth_jax.errors import RunError
 from irdepth_jax.runs import checkpoint
 from irdepth_jax.train import phase, stages
 from irdepth_jax.train.workdir_lock import LOCK_NAME
@@ -133,18 +134,24 @@ def test_out_that_is_a_file(tmp_path, capsys, command):
 
 # --------------------------------------------------------------------------- nothing left behind
 def test_failure_before_the_first_step_leaves_nothing(data, tmp_path, capsys, monkeypatch):
-    def broken(*args, **kwargs):
-        raise ValueError("optimizer broke")
-
-    monkeypatch.setattr(stages, "stage1_optimizer", broken)
+    """A refusal (one line, exit code 2) or a bug (its traceback) before the first step."""
     fresh, mine = tmp_path / "fresh", tmp_path / "mine"
     mine.mkdir()
     (mine / "notes.txt").write_text("keep me")
-    for work in (fresh, mine):
-        code, _, err = run(train(data, work, "--steps", "2"), capsys)
-        assert code == 2 and "irdepth: error: optimizer broke" in err and "Traceback" not in err
-    assert not fresh.exists()
-    assert os.listdir(mine) == ["notes.txt"]
+    for error in (RunError, ValueError):
+        def broken(*args, error=error, **kwargs):
+            raise error("optimizer broke")
+
+        monkeypatch.setattr(stages, "stage1_optimizer", broken)
+        for work in (fresh, mine):
+            if error is RunError:
+                code, _, err = run(train(data, work, "--steps", "2"), capsys)
+                assert code == 2 and "irdepth: error: optimizer broke" in err and "Traceback" not in err
+            else:
+                with pytest.raises(ValueError, match="optimizer broke"):
+                    run(train(data, work, "--steps", "2"), capsys)
+        assert not fresh.exists()
+        assert os.listdir(mine) == ["notes.txt"]
     monkeypatch.undo()
     code, _, err = run(train(data, fresh, "--steps", "1"), capsys)
     assert code == 0, err

@@ -68,3 +68,77 @@ def test_synth_defaults_fit_any_n(tmp_path, capsys):
         err = capsys.readouterr().err
         assert err.strip() == f"irdepth: error: {message}", err
     assert not (tmp_path / "e").exists()
+
+
+def test_a_bad_config_value_is_one_line_naming_the_key(tmp_path, capsys):
+    """A value outside a key's set is refused before anything is written, naming the key and
+    the values it takes, exit code 2."""
+    from irdepth_jax import cli
+
+    work = tmp_path / "w"
+    code = cli.main(["train", "stage1", "--data", str(tmp_path), "--workdir", str(work),
+                     "stage2.hue_mode=hsv"])
+    assert code == 2
+    assert capsys.readouterr().err == ("irdepth: error: stage2.hue_mode='hsv': choose one of soft, "
+                                       "argmax, constant\n")
+    assert not work.exists()
+
+
+def test_a_bug_is_not_reported_as_a_usage_error(tmp_path, capsys, monkeypatch):
+    """Only the package's own errors are one-line usage errors: a plain ValueError raised inside
+    the library (a bug) propagates with its traceback."""
+    from irdepth_jax import cli, config
+
+    def planted(*args, **kwargs):
+        raise ValueError("planted bug")
+
+    monkeypatch.setattr(config, "apply_overrides", planted)
+    with pytest.raises(ValueError, match="planted bug"):
+        cli.main(["train", "stage1", "--data", str(tmp_path), "--workdir", str(tmp_path / "w")])
+    assert "irdepth: error" not in capsys.readouterr().err
+
+
+def test_library_errors_name_options_the_cli_shows_as_flags():
+    from irdepth_jax.cli import build_parser
+    from irdepth_jax.errors import with_flags
+
+    args = build_parser().parse_args(["train", "stage2", "--data", "d", "--workdir", "w"])
+    message = "`stage1_checkpoint` x: no; pass `resume_or_start` or `resume` (`nothing`)"
+    assert with_flags(message, args.flags) == ("--stage1-checkpoint x: no; pass --resume-or-start "
+                                               "or --resume (`nothing`)")
+
+
+FLAGS_STILL_NAMED = {"predict.py", "data/inputs.py", "data/rosbag.py", "imaging/raw.py"}
+"""Modules whose messages still name predict's flags: predict prints them itself as skip lines,
+not through `cli.main`, which writes the library's `name`s as flags."""
+
+
+def test_library_messages_name_options_not_flags():
+    """Outside the CLI, a message names an option as `name` (errors.py), never as --flag (the
+    strings of the package's modules but docstrings, which may say which flag uses a function;
+    a compiler's --version is no flag of ours)."""
+    import ast
+    import pathlib
+    import re
+
+    package = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
+    flag = re.compile(r"(^|[\s(])--[a-z]")
+    found = []
+    for path in sorted(package.rglob("*.py")):
+        name = path.relative_to(package).as_posix()
+        if name.startswith("cli/") or name in FLAGS_STILL_NAMED:
+            continue
+        tree = ast.parse(path.read_text())
+        docstrings = {id(n.value) for n in ast.walk(tree) if isinstance(n, ast.Expr)}
+        found += [f"{name}:{c.lineno}: {c.value}" for c in ast.walk(tree)
+                  if isinstance(c, ast.Constant) and isinstance(c.value, str)
+                  and id(c) not in docstrings and flag.search(c.value) and c.value != "--version"]
+    assert not found, found
+
+
+def test_quickstart_refuses_a_used_workdir_before_jax(tmp_path):
+    (tmp_path / "mine.txt").write_text("keep me")
+    out, err, _ = irdepth("quickstart", "--workdir", tmp_path)
+    assert out == "jax not imported 2", (out, err)
+    assert err == f"irdepth: error: --workdir {tmp_path} exists and is not empty; choose another directory"
+    assert os.listdir(tmp_path) == ["mine.txt"]

@@ -2,6 +2,7 @@ import dataclasses
 import importlib
 import json
 import pathlib
+import typing
 
 import pytest
 
@@ -13,6 +14,7 @@ from irdepth_jax.config import (
     get_config,
     to_dict,
 )
+from irdepth_jax.errors import ConfigError
 
 PRESET_DICTS = pathlib.Path(__file__).parent / "data" / "preset_configs.json"
 """to_dict(get_config(name)) of each preset, as the code before presets became files made them."""
@@ -105,3 +107,55 @@ def test_cli_preset_choices_come_from_the_package():
             assert parser.parse_args([*argv, "--preset", name]).preset == name
         with pytest.raises(SystemExit):
             parser.parse_args([*argv, "--preset", "huge"])
+
+
+def test_enumerations_are_checked_once_where_the_config_is_made():
+    """A `Literal` field takes only its values: from an override, a replace, a config dict;
+    the error names the key and every allowed value."""
+    cfg = get_config("tiny")
+    for override, message in (
+            ("stage2.preprocessing=bogus", "stage2.preprocessing='bogus': choose one of hsv, value, "
+                                           "rgb, blank, linear, he, clahe, plateau, double_plateau, "
+                                           "dde, camera"),
+            ("data.raw_bits=15", "data.raw_bits='15': choose one of 14, 16, auto"),
+            ("depth.load_head=maybe", "depth.load_head='maybe': choose one of auto, true, false"),
+            ("stage1.optimizer=sgd", "stage1.optimizer='sgd': choose one of adadelta, adamw"),
+            ("stage1.i1_frames=some", "stage1.i1_frames='some': choose one of train, all")):
+        with pytest.raises(ConfigError) as err:
+            apply_overrides(cfg, [override])
+        assert str(err.value) == message
+    with pytest.raises(ConfigError, match=r"^stage2\.hue_mode='hsv': choose one of soft, argmax, "
+                                          r"constant$"):
+        dataclasses.replace(cfg, stage2=dataclasses.replace(cfg.stage2, hue_mode="hsv"))
+    with pytest.raises(ConfigError, match=r"^unet\.use_rgg='no': expected true or false$"):
+        dataclasses.replace(cfg, unet=dataclasses.replace(cfg.unet, use_rgg="no"))
+    with pytest.raises(ConfigError, match=r"^stage1\.steps_i1=2\.5: expected an integer or none$"):
+        from_dict({**to_dict(cfg), "stage1": {**to_dict(cfg)["stage1"], "steps_i1": 2.5}})
+    got = apply_overrides(cfg, ["data.raw_bits=16", "depth.load_head=false", "stage1.steps_i1=none",
+                                "stage1.learning_rate=2"])
+    assert (got.data.raw_bits, got.depth.load_head, got.stage1.steps_i1) == (16, False, None)
+    assert got.stage1.learning_rate == 2.0 and apply_overrides(cfg, ["data.raw_bits=auto"]
+                                                               ).data.raw_bits == "auto"
+
+
+def test_an_old_config_json_with_a_string_load_head_still_loads():
+    """depth.load_head was "auto" | "true" | "false"; runs written then store the strings."""
+    stored = to_dict(get_config("tiny"))
+    for old, new in (("true", True), ("false", False), ("auto", "auto")):
+        stored["depth"]["load_head"] = old
+        assert from_dict(stored).depth.load_head == new
+        assert type(from_dict(stored).depth.load_head) is type(new)
+
+
+def test_the_library_lists_of_names_are_the_configs_literals():
+    """One list per enumeration: the modules take theirs from the config's `Literal`s, or keep a
+    registry (functions, sizes) whose names are exactly the `Literal`'s."""
+    from irdepth_jax import config_schema as schema
+    from irdepth_jax.config import STAGE1_IMAGES
+    from irdepth_jax.data.source import PREPROCESSING
+    from irdepth_jax.imaging.tonemap import TONEMAPS
+    from irdepth_jax.models import depth_anything
+
+    assert set(PREPROCESSING) == {*STAGE1_IMAGES, "rgb", "blank", *TONEMAPS}
+    assert depth_anything.ENCODERS == typing.get_args(schema.Encoder)
+    assert tuple(depth_anything._DTYPES) == typing.get_args(schema.ComputeDtype)

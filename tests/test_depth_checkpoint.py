@@ -82,8 +82,10 @@ def test_ambiguous_files_and_impossible_requests_are_refused(released, tmp_path)
         ((paths[RELATIVE], "depth.load_head=true"),
          rf"depth\.load_head=true: {paths[RELATIVE]} holds a relative head, depth\.metric=true "
          "trains a metric one"),
-        ((paths[RELATIVE], "depth.load_head=maybe"), "depth.load_head 'maybe': choose"),
-        ((paths[RELATIVE], "depth.checkpoint_kind=metrc"), "kind 'metrc'"),
+        ((paths[RELATIVE], "depth.load_head=maybe"),
+         r"^depth\.load_head='maybe': choose one of auto, true, false$"),
+        ((paths[RELATIVE], "depth.checkpoint_kind=metrc"),
+         r"^depth\.checkpoint_kind='metrc': choose one of auto, metric, relative$"),
         ((tmp_path / "absent.pth",), f"no checkpoint at '{tmp_path / 'absent.pth'}'"),
     ]
     for args, message in refusals:

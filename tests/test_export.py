@@ -158,5 +158,5 @@ def test_sample_file_and_refusals(stage1_run, stage2_run, model, tmp_path, capsy
     # onnxruntime's CPU kernels take no bfloat16 Einsum: such a model is refused before converting
     bf16 = dataclasses.replace(cfg, depth=dataclasses.replace(cfg.depth, dtype="bfloat16"))
     monkeypatch.setattr(model_io, "load_model", lambda path: (bf16, "stage2", variables))
-    with pytest.raises(export.ExportError, match="depth.dtype=bfloat16, .* use --format stablehlo"):
+    with pytest.raises(export.ExportError, match="depth.dtype=bfloat16, .* use `format` stablehlo"):
         export.export_model("RUN", "onnx", height, width, batch, str(out))

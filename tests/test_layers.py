@@ -24,7 +24,7 @@ LAYERS = [
     ("runs and deployment", ["evaluate", "predict", "predict_settings", "predict_runner",
                              "predict_outputs", "predict_video", "pointcloud",
                              "depth_colours", "export", "workflow"]),
-    ("command line", ["cli", "cli_commands", "__main__"]),
+    ("command line", ["cli", "__main__"]),
 ]
 
 

@@ -163,7 +163,7 @@ def test_data_source_warns_once_per_split_and_strict_raises(realdata, tmp_path):
         assert source.frames("val", optional=True)[0] is None  # no val sequence on disk
     assert len(caught) == 1 and "1 of 3 sequences of test_day_list.txt" in str(caught[0].message)
     strict = DataSource(str(root), strict=True)
-    with pytest.raises(RunError, match=rf"^--data {root}: .*1 of 3 sequences of test_day_list"):
+    with pytest.raises(RunError, match=rf"^`data` {root}: .*1 of 3 sequences of test_day_list"):
         strict.frames("test_day")
     with pytest.raises(RunError, match="3 of 3 sequences of val_list.txt are not on disk"):
         strict.frames("val", optional=True)  # strict: a missing sequence is never optional

@@ -7,6 +7,7 @@ import numpy as np
 import optax
 import pytest
 
+from irdepth_jax.errors import RunError
 from irdepth_jax.train.parallel import DataParallel
 from irdepth_jax.train.state import TrainState
 from irdepth_jax.train.steps import make_train_step
@@ -127,5 +128,5 @@ def test_accumulation_rejects_uneven_split():
 def test_bad_mode_and_device_count():
     with pytest.raises(ValueError, match="parallel mode"):
         DataParallel("ddp")
-    with pytest.raises(ValueError, match="--devices 64"):
+    with pytest.raises(RunError, match="^`devices` 64: this machine has"):
         DataParallel("shard_map", num_devices=64)

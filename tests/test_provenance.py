@@ -10,7 +10,7 @@ from ms2_layout import LIST_NAMES, partial_ms2
 from trained_runs import DATA, STEPS
 
 from irdepth_jax import cli
-from irdepth_jax.cli_commands import quickstart_next_steps
+from irdepth_jax.cli.quickstart import quickstart_next_steps
 from irdepth_jax.config import get_config
 from irdepth_jax.runs.variables import load_model
 

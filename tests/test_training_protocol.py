@@ -16,7 +16,7 @@ from irdepth_jax.data.augment import augment
 from irdepth_jax.data.source import DataSource, phase_frames, stage1_i2_frames
 from irdepth_jax.data.synthetic import render_scene
 from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
-from irdepth_jax.errors import RunError
+from irdepth_jax.errors import ConfigError
 from irdepth_jax.evaluators import evaluate_stage1
 from irdepth_jax.models.pipeline import unet_input
 from irdepth_jax.runs.variables import init_unet
@@ -173,8 +173,8 @@ def test_stage1_i1_frames_option(independent):
     assert len(train) == len(source.frames("train")[1])
     _, every = phase_frames(source, "stage1_i1", apply_overrides(CFG, ["stage1.i1_frames=all"]))
     assert len(every) == len(_records(independent)) > len(train)
-    with pytest.raises(RunError, match="i1_frames"):
-        phase_frames(source, "stage1_i1", apply_overrides(CFG, ["stage1.i1_frames=most"]))
+    with pytest.raises(ConfigError, match=r"^stage1\.i1_frames='most': choose one of train, all$"):
+        apply_overrides(CFG, ["stage1.i1_frames=most"])  # refused where the config is made
 
 
 # --------------------------------------------------------------------------- defect 8

@@ -58,6 +58,7 @@ import numpy as np
 from irdepth_jax.config import IGNORE_LABEL
 from irdepth_jax.data.depth_png import DEPTH_SCALE, decode_depth, encode_depth
 from irdepth_jax.data.rawio import accepted_bits
+from irdepth_jax.errors import IrdepthError
 from irdepth_jax.fileio import make_dirs, write_bytes, write_png
 from irdepth_jax.imaging.raw import check_raw
 
@@ -71,7 +72,7 @@ _ID = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _RECORD_KEYS = ("id", "split", "seg_split", "condition", "labeled")
 
 
-class DatasetError(Exception):
+class DatasetError(IrdepthError):
     """A dataset file or directory is missing, corrupt or inconsistent (the message names it)."""
 
 

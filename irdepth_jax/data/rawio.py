@@ -30,22 +30,25 @@ frame raises `RawFileError`. Both are one-line ValueErrors naming the file.
 from __future__ import annotations
 
 import os
+import typing
 
 import numpy as np
 
-from irdepth_jax.imaging.raw import BIT_DEPTHS, RAW_MAX, check_raw
+from irdepth_jax.config_schema import RawBits
+from irdepth_jax.errors import IrdepthError
+from irdepth_jax.imaging.raw import RAW_MAX, check_raw
 
 RAW_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".fff", ".seq", ".jpg", ".jpeg", ".bag")
 """File suffixes `read_frames` reads (lower case; matched case-insensitively)."""
 
-RAW_BITS_SETTINGS = BIT_DEPTHS + ("auto",)
+RAW_BITS_SETTINGS = typing.get_args(RawBits)
 """Values of `DataConfig.raw_bits`."""
 
 AUTO_SAMPLE = 256
 """Most training frames `detect_raw_bits` reads (evenly spaced over the split)."""
 
 
-class RawFileError(ValueError):
+class RawFileError(IrdepthError, ValueError):
     """A file that is not a readable raw thermal frame (one line naming the file and why)."""
 
 

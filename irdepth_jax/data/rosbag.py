@@ -14,10 +14,12 @@ import os
 
 import numpy as np
 
+from irdepth_jax.errors import IrdepthError
+
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 
 
-class BagError(ValueError):
+class BagError(IrdepthError, ValueError):
     """A bag that cannot be read as thermal frames (one line naming the bag and why)."""
 
 

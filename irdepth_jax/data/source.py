@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+import typing
 from collections.abc import Iterator
 from typing import Any
 
@@ -14,12 +15,14 @@ import jax
 import numpy as np
 
 from irdepth_jax.config import IGNORE_LABEL, STAGE1_IMAGES, Config, resolved_raw_bits
+from irdepth_jax.config_schema import Preprocessing
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.imaging.tonemap import TONEMAPS
 
-PREPROCESSING = STAGE1_IMAGES + ("rgb", "blank") + tuple(TONEMAPS)
-"""Stage II input images: 'blank' (a constant grey image) is a control: what the depth network
-learns from the scene layout alone, with no image information."""
+PREPROCESSING = typing.get_args(Preprocessing)
+"""Stage II input images (`stage2.preprocessing`): the Stage I images (`config.STAGE1_IMAGES`),
+the visible image 'rgb', the tonemaps of the raw frame (`TONEMAPS`), and 'blank': a constant grey
+image, the control of what the depth network learns from the scene layout alone."""
 BLANK_GREY = 128
 
 
@@ -47,9 +50,9 @@ class DataSource:
         from irdepth_jax.data.rawio import accepted_bits
 
         if fmt not in ("auto", "folder", "ms2"):
-            raise RunError(f"--format {fmt!r}: choose auto, folder or ms2")
+            raise RunError(f"`format` {fmt!r}: choose auto, folder or ms2")
         if not os.path.isdir(path):
-            raise RunError(f"--data {path}: no such directory")
+            raise RunError(f"`data` {path}: no such directory")
         try:
             accepted_bits(raw_bits)
         except ValueError as err:
@@ -63,12 +66,12 @@ class DataSource:
         self._folder = None
         if self.format == "folder":
             if depth_label is not None:
-                raise RunError(f"--gt {depth_label}: depth label versions are MS2's; --data "
+                raise RunError(f"`gt` {depth_label}: depth label versions are MS2's; `data` "
                                f"{path} is a folder dataset (one depth per frame)")
             try:
                 self._folder = FolderDataset(path, raw_bits=raw_bits)
             except (DatasetError, ValueError, OSError) as err:
-                raise RunError(f"--data {path}: {one_line(err)}") from None
+                raise RunError(f"`data` {path}: {one_line(err)}") from None
 
     def frames(self, split: str, labeled: bool | None = None, optional: bool = False,
                stride: int = 1) -> tuple[Any, np.ndarray]:
@@ -96,7 +99,7 @@ class DataSource:
         except (self._error, ValueError, OSError) as err:
             if optional and not isinstance(err, MissingSequencesError):
                 return None, np.zeros(0, np.int64)
-            raise RunError(f"--data {self.path}: {one_line(err)}") from None
+            raise RunError(f"`data` {self.path}: {one_line(err)}") from None
 
     def seg_frames(self, seg_split: str) -> tuple[Any, np.ndarray]:
         """(dataset, indices) of the labelled frames of segmentation split `seg_split` (train /
@@ -172,12 +175,10 @@ def phase_frames(source: DataSource, phase: str, cfg: Config) -> tuple[Any, np.n
         return stage1_i2_frames(source, cfg)[:2]
     if phase == "stage1_i1" and cfg.stage1.i1_frames == "all":
         dataset, idx = source.all_frames()
-    elif phase == "stage1_i1" and cfg.stage1.i1_frames != "train":
-        raise RunError(f"stage1.i1_frames {cfg.stage1.i1_frames!r}: choose train or all")
     else:
         dataset, idx = source.frames("train")
     if len(idx) == 0:
-        raise RunError(f"--data {source.path}: no training frames")
+        raise RunError(f"`data` {source.path}: no training frames")
     return dataset, np.asarray(idx)
 
 
@@ -222,7 +223,7 @@ def stage1_i2_frames(source: DataSource, cfg: Config) -> tuple[Any, np.ndarray, 
     labeled = sum(described.values())
     if labeled == 0:
         raise RunError(
-            f"--data {source.path}: no segmentation labels (no labelled frame with seg_split "
+            f"`data` {source.path}: no segmentation labels (no labelled frame with seg_split "
             "train), so Stage I-2 would leave the segmentation branch untrained while Stage II "
             "takes its Hue channel and sky mask from it. Pass stage1.seg_labels=synthetic "
             "(rendered labelled scenes), stage1.seg_labels=PATH (a labelled folder dataset), "

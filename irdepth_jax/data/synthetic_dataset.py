@@ -96,7 +96,7 @@ def write_synthetic_dataset(out_dir, n: int, labeled: int, height: int, width: i
     if out.is_dir() and any(out.iterdir()):
         if not overwrite:
             raise DatasetError(f"{out}: directory exists and is not empty; choose another path or "
-                               "pass overwrite=True (--overwrite) to replace the dataset")
+                               "pass `overwrite` to replace the dataset")
         (out / "manifest.json").unlink(missing_ok=True)
         for field in MAP_FOLDERS:
             shutil.rmtree(out / field, ignore_errors=True)

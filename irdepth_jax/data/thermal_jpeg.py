@@ -25,8 +25,10 @@ import struct
 
 import numpy as np
 
+from irdepth_jax.errors import IrdepthError
 
-class ThermalFileError(ValueError):
+
+class ThermalFileError(IrdepthError, ValueError):
     """A file that is not a readable thermal JPEG / FFF record (one line naming it and why)."""
 
 

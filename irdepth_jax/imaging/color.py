@@ -6,12 +6,14 @@ Hue = semantics (a hue per class), Saturation = gradient structure, Value = reco
 from __future__ import annotations
 
 import math
+import typing
 
 import dm_pix
 import jax
 import jax.numpy as jnp
 
 from irdepth_jax.config import CLASS_NAMES
+from irdepth_jax.config_schema import HueMode
 
 CLASS_HUES: tuple[float, ...] = (4 / 6, 0 / 6, 1 / 6, 5 / 6, 3 / 6, 2 / 6)
 """Hue in [0, 1) per class of `CLASS_NAMES` (sky, building, car, bicycle, road, tree).
@@ -22,7 +24,7 @@ building red (0), car yellow (60), bicycle magenta (300), road cyan (180), tree 
 
 assert len(CLASS_HUES) == len(CLASS_NAMES)
 
-_HUE_MODES = ("soft", "argmax", "constant")
+_HUE_MODES = typing.get_args(HueMode)
 _EPS = 1e-12
 
 

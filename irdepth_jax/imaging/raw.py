@@ -12,16 +12,20 @@ run's bit depth is `DataConfig.raw_bits`. Two normalisations are offered (`UNetC
 
 from __future__ import annotations
 
+import typing
+
 import jax.numpy as jnp
 import numpy as np
+
+from irdepth_jax.config_schema import RawBits, RawScale
 
 RAW_MAX = 2**14 - 1
 """Largest count a 14-bit sensor produces."""
 
-BIT_DEPTHS = (14, 16)
+BIT_DEPTHS: tuple[int, ...] = tuple(b for b in typing.get_args(RawBits) if isinstance(b, int))
 """Bit depths of raw counts the model takes (`DataConfig.raw_bits`, once resolved)."""
 
-_MODES = ("fixed", "percentile")
+_MODES = typing.get_args(RawScale)
 
 
 def _dtype_error(dtype, bits: int = 14) -> str | None:

@@ -35,13 +35,14 @@ import jax.numpy as jnp
 import numpy as np
 import orbax.checkpoint as ocp
 
+from irdepth_jax.errors import IrdepthError
 from irdepth_jax.runs.legacy_names import from_legacy, has_legacy_keys, to_legacy
 
 STAGES = ("stage1_i1", "stage1_i2", "stage2")
 """The training phases a run directory holds checkpoints of (``checkpoints/<stage>``)."""
 
 
-class CheckpointError(ValueError):
+class CheckpointError(IrdepthError, ValueError):
     """A checkpoint that is missing, of another stage or of another shape (one-line message)."""
 
 

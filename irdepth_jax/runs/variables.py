@@ -72,8 +72,8 @@ def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
     or a Stage II): the backbone from it, and its head by `depth.load_head`: 'auto' when the
     file's head kind (`depth.checkpoint_kind`, see `weights.load_depth_anything`; a run's
     `depth.metric`) is the one `depth.metric` trains, else a random head (how the official
-    metric fine-tuning starts from a relative checkpoint); 'true' the file's head, refused when
-    the kinds differ; 'false' a random head.
+    metric fine-tuning starts from a relative checkpoint); True the file's head, refused when
+    the kinds differ; False a random head.
 
     Returns (params, {'backbone': str, 'head': str}, plus 'max_depth': str when a loaded metric
     head was trained for another range than `depth.max_depth`), for `RunLog.info`. Raises
@@ -84,16 +84,13 @@ def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:
     if not d.checkpoint:
         return random_depth(cfg), {"backbone": "random init (no depth.checkpoint)",
                                    "head": "random init (no depth.checkpoint)"}
-    load_head = str(d.load_head).lower()
-    if load_head not in ("auto", "true", "false"):
-        raise RunError(f"depth.load_head {d.load_head!r}: choose auto, true or false")
     file_cfg, loaded = _depth_of_run(d.checkpoint, cfg) if _is_run(d.checkpoint) else _depth_of_file(d)
     file_kind, kind = ("metric" if m else "relative" for m in (file_cfg.metric, d.metric))
     params = {**random_depth(cfg), "pretrained": loaded["pretrained"]}
     described = {"backbone": f"loaded from {d.checkpoint} (encoder {d.encoder})"}
-    if load_head == "false":
+    if d.load_head is False:
         described["head"] = "random init: depth.load_head=false"
-    elif file_kind != kind and load_head == "true":
+    elif file_kind != kind and d.load_head is True:
         raise RunError(f"depth.load_head=true: {d.checkpoint} holds a {file_kind} head, "
                        f"depth.metric={str(d.metric).lower()} trains a {kind} one: set "
                        "depth.load_head=auto (backbone only), the other depth.metric, or "
@@ -173,7 +170,7 @@ def take_stage1_settings(path: str, cfg: Config, explicit: Collection[str] = ()
         directory, _ = find_checkpoint(path, STAGE1_STAGES)
         stored = from_dict(read_meta(directory)["config"])
     except CheckpointError as err:
-        raise RunError(f"--stage1-checkpoint: {err}") from None
+        raise RunError(f"`stage1_checkpoint`: {err}") from None
     changed = {}
     for key in STAGE1_MODEL_KEYS:
         mine, theirs = get_key(cfg, key), get_key(stored, key)
@@ -182,7 +179,7 @@ def take_stage1_settings(path: str, cfg: Config, explicit: Collection[str] = ()
         if key in explicit:
             trained = (f"Stage I was trained on {theirs}-bit raw counts" if key == "data.raw_bits"
                        else f"the Stage I model has {key}={_word(theirs)}")
-            raise RunError(f"--stage1-checkpoint {path}: {trained}, this run sets "
+            raise RunError(f"`stage1_checkpoint` {path}: {trained}, this run sets "
                            f"{key}={_word(mine)}; Stage II takes {key} from Stage I: leave it "
                            "out, or retrain Stage I with it")
         changed[key] = (mine, theirs)
@@ -204,11 +201,11 @@ def load_stage1(path: str, cfg: Config) -> tuple[dict, dict]:
         items, meta = restore_items(directory, stage, {"model": unet_shapes(cfg)})
         unet = dict(items["model"])
     except CheckpointError as err:
-        raise RunError(f"--stage1-checkpoint: {err}") from None
+        raise RunError(f"`stage1_checkpoint`: {err}") from None
     # checkpoints written before data.raw_bits existed were trained on 14-bit counts
     trained_bits = meta.get("config", {}).get("data", {}).get("raw_bits", 14)
     if trained_bits != cfg.data.raw_bits:
-        raise RunError(f"--stage1-checkpoint {path}: Stage I was trained on {trained_bits}-bit "
+        raise RunError(f"`stage1_checkpoint` {path}: Stage I was trained on {trained_bits}-bit "
                        f"raw counts, this run has data.raw_bits={cfg.data.raw_bits}; use "
                        f"data.raw_bits={trained_bits} (the same data) or retrain Stage I")
     if meta.get("stage") == "stage1_i1":

@@ -26,6 +26,8 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
+from irdepth_jax.errors import RunError
+
 MODES = ("single", "shard_map", "pmap")
 AXIS = "data"
 
@@ -50,7 +52,7 @@ def make_mesh(num_devices: int | None = None, axis_name: str = AXIS) -> Mesh:
     devices = jax.devices()
     n = len(devices) if num_devices is None else num_devices
     if n < 1 or n > len(devices):
-        raise ValueError(f"--devices {n}: this machine has {len(devices)} JAX device(s)")
+        raise RunError(f"`devices` {n}: this machine has {len(devices)} JAX device(s)")
     return Mesh(np.asarray(devices[:n]), (axis_name,))
 
 

@@ -164,13 +164,13 @@ def _run_phase(phase, cfg, dp, opts, log, ckpt) -> TrainState:
     start = 0
     if ckpt.latest_step() is not None:
         if not opts.resume:
-            raise RunError(f"{ckpt.directory} already holds checkpoints; pass --resume")
+            raise RunError(f"{ckpt.directory} already holds checkpoints; pass `resume`")
         state, meta = ckpt.restore(state)
         start = int(meta["step"])
         if start > phase.total_steps:
             raise RunError(f"{ckpt.directory} holds step {start}, beyond the {phase.total_steps} "
-                           f"steps {phase.name} now has (its --steps or epochs changed); "
-                           "resume with the earlier length or use a new --workdir")
+                           f"steps {phase.name} now has (its `steps` or epochs changed); "
+                           "resume with the earlier length or use a new `workdir`")
         if meta.get("data_state") is not None:
             phase.stream.set_state(meta["data_state"])
     if opts.resume:  # lines logged after the last checkpoint are written again
@@ -226,7 +226,7 @@ def _run_phase(phase, cfg, dp, opts, log, ckpt) -> TrainState:
                 bar.close()
                 why = "interrupted" if stop.requested else f"stopped at step {opts.stop_at}"
                 raise Interrupted(f"{why}: {phase.name} checkpoint at step {step} in "
-                                  f"{ckpt.directory}; continue with --resume")
+                                  f"{ckpt.directory}; continue with `resume`")
     bar.close()
     return host_state(state)
 
@@ -272,7 +272,7 @@ def make_parallel(opts: RunOptions, batch_size: int = 1, accum_steps: int = 1,
             f"{n} device{'s' * (n > 1)}"]
         fixes = ([f"{section}.accum_steps={a}" for a in range(accum_steps - 1, 0, -1)
                   if batch_size % (a * n) == 0][:1]
-                 + [f"--devices {k}" for k in range(n - 1, 0, -1)
+                 + [f"`devices` {k}" for k in range(n - 1, 0, -1)
                     if batch_size % (accum_steps * k) == 0][:1]
                  + [f"{section}.batch_size={-(-batch_size // per) * per}"])
         raise RunError(f"{section}.batch_size={batch_size} is not a multiple of "
@@ -283,7 +283,7 @@ def make_parallel(opts: RunOptions, batch_size: int = 1, accum_steps: int = 1,
             fix = (f"{section}.batch_size={count // unit * unit}" if count >= unit else
                    f"{section}.batch_size={count}"
                    + f" and {section}.accum_steps=1" * (accum_steps > 1)
-                   + " and --devices 1" * (unit > accum_steps))
+                   + " and `devices` 1" * (unit > accum_steps))
             raise RunError(f"{section}.batch_size={batch_size} is larger than the {count} "
                            f"training frames of {phase} (an epoch drops its incomplete last "
                            f"batch, so it would have no step): set {fix}")

@@ -122,8 +122,8 @@ def prepare_workdir(workdir: str, cfg: Config, resume: bool) -> None:
     """
     path = os.path.join(workdir, "config.json")
     if holds_run(workdir) and not resume:
-        raise RunError(f"workdir {workdir} already holds a run; pass --resume to continue it or "
-                       "choose another --workdir")
+        raise RunError(f"workdir {workdir} already holds a run; pass `resume` to continue it or "
+                       "choose another `workdir`")
     metrics = os.path.join(workdir, "metrics.jsonl")
     if resume and jax.process_index() == 0 and os.path.exists(metrics):
         read_metrics(metrics)
@@ -134,7 +134,7 @@ def prepare_workdir(workdir: str, cfg: Config, resume: bool) -> None:
         if stored != current:
             changed = sorted(k for k in _flatten(current)
                              if _flatten(stored).get(k) != _flatten(current)[k])
-            raise RunError(f"--resume: config differs from {path} in {', '.join(changed)}")
+            raise RunError(f"`resume`: config differs from {path} in {', '.join(changed)}")
         return
     if jax.process_count() > 1:  # every process has checked before process 0 writes
         from jax.experimental import multihost_utils
@@ -160,9 +160,9 @@ def check_same_data(workdir: str, stage: str, fingerprint: dict, data: str) -> N
         recorded = json.load(f).get(stage)
     changes = fingerprint_changes(recorded or {}, fingerprint)
     if changes:
-        raise RunError(f"--resume: the dataset changed since this run started ({path}): --data "
+        raise RunError(f"`resume`: the dataset changed since this run started ({path}): `data` "
                        f"{data}: {'; '.join(changes)}; resume on the data it started with, or "
-                       "start a new --workdir")
+                       "start a new `workdir`")
 
 
 def record_data(workdir: str, stage: str, fingerprint: dict) -> None:

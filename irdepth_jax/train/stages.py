@@ -18,7 +18,6 @@ import numpy as np
 from irdepth_jax.config import STAGE1_IMAGES, Config
 from irdepth_jax.data.fingerprint import data_fingerprint
 from irdepth_jax.data.source import (
-    PREPROCESSING,
     BatchStream,
     DataSource,
     make_loader,
@@ -61,11 +60,11 @@ def _full_disk_in_one_line(train: Callable) -> Callable:
                 raise
             last = last_checkpoint(opts.workdir)
             then = (f"the last good checkpoint is {last[0]} step {last[1]}; free space, then "
-                    "continue with --resume" if last else
+                    "continue with `resume`" if last else
                     "no checkpoint was finished; free space, then run again with "
-                    "--resume-or-start")
+                    "`resume_or_start`")
             raise RunError(f"no space left on {describe_disk(opts.workdir)}, which holds "
-                           f"--workdir {opts.workdir}: {then}") from err
+                           f"`workdir` {opts.workdir}: {then}") from err
     return run
 
 
@@ -156,7 +155,7 @@ def _check_i2_continues_i1(workdir: str, i1_total: int) -> None:
     if started is not None and started != i1_total:
         raise RunError(
             f"{directory}: Stage I-2 started from stage1_i1 at step {started}, but stage1_i1 "
-            f"would now run to step {i1_total} (--steps or epochs changed): the result would be "
+            f"would now run to step {i1_total} (`steps` or epochs changed): the result would be "
             f"neither run. Delete {directory} to run I-2 again from the new I-1, or resume "
             f"with the earlier length")
 
@@ -173,7 +172,7 @@ def train_depth(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     Returns {'unet': None, 'depth': final Depth Anything V2 params}.
     """
     if opts.stage1_checkpoint is not None:
-        raise RunError("--stage1-checkpoint: train depth trains on visible images, without a "
+        raise RunError("`stage1_checkpoint`: train depth trains on visible images, without a "
                        "Stage I model")
     if cfg.stage2.preprocessing not in ("hsv", "rgb", "blank"):  # hsv: the presets' default
         raise RunError(f"stage2.preprocessing={cfg.stage2.preprocessing}: train depth trains on "
@@ -202,7 +201,7 @@ def check_segmentation_use(cfg: Config, segmentation: dict, where: str) -> None:
     if s2.sky_loss:
         uses.append("its sky mask (pass stage2.sky_loss=false)")
     if uses:
-        raise RunError(f"--stage1-checkpoint {where}: the segmentation branch was never trained "
+        raise RunError(f"`stage1_checkpoint` {where}: the segmentation branch was never trained "
                        f"({segmentation.get('why', 'no labelled frames')}), yet Stage II would "
                        f"use {' and '.join(uses)}; or retrain Stage I with "
                        "stage1.seg_labels=synthetic or =PATH")
@@ -237,10 +236,8 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     cfg = resolve_raw_bits(cfg, source)
     check_run(cfg, source, opts, "stage2")
     s2 = cfg.stage2
-    if s2.preprocessing not in PREPROCESSING:
-        raise RunError(f"stage2.preprocessing {s2.preprocessing!r}: choose one of {PREPROCESSING}")
     if opts.stage1_checkpoint is None and (s2.preprocessing in STAGE1_IMAGES or s2.sky_loss):
-        raise RunError(f"stage 2 needs --stage1-checkpoint (for the {s2.preprocessing} input and "
+        raise RunError(f"stage 2 needs `stage1_checkpoint` (for the {s2.preprocessing} input and "
                        "the sky mask); "
                        "for a baseline without it use stage2.preprocessing=he "
                        "stage2.sky_loss=false")

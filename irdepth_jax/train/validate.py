@@ -54,17 +54,16 @@ def check_run(cfg: Config, source, opts: RunOptions, stage: str) -> None:
     for field in dataclasses.fields(section):
         if "learning_rate" in field.name or field.name.endswith("_multiplier"):
             rate = getattr(section, field.name)
-            if (isinstance(rate, bool) or not isinstance(rate, (int, float))
-                    or not math.isfinite(rate) or rate <= 0):
+            if not math.isfinite(rate) or rate <= 0:  # a number: the config's types are checked
                 raise RunError(f"{stage}.{field.name}={rate!r}: a learning rate (or rate "
                                "multiplier) must be a finite number > 0")
-    for flag, value in (("--steps", opts.steps), ("--stop-at", opts.stop_at)):
+    for name, value in (("steps", opts.steps), ("stop_at", opts.stop_at)):
         if value is not None and value < 1:
-            raise RunError(f"{flag} {value}: must be >= 1")
+            raise RunError(f"`{name}` {value}: must be >= 1")
     other = held_stages(opts.workdir) - {stage}
     if opts.resume and other:
-        raise RunError(f"--resume: workdir {opts.workdir} holds a {', '.join(sorted(other))} run, "
-                       f"which train {stage} cannot continue; choose another --workdir")
+        raise RunError(f"`resume`: workdir {opts.workdir} holds a {', '.join(sorted(other))} run, "
+                       f"which train {stage} cannot continue; choose another `workdir`")
     if stage == "stage2":
         _check_depth(source, cfg)
 
@@ -72,7 +71,7 @@ def check_run(cfg: Config, source, opts: RunOptions, stage: str) -> None:
 def _check_count(key: str, value, low: int, optional: bool) -> None:
     if value is None and optional:
         return
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+    if value < low:  # an integer: the config's types are checked
         none = " (or none)" if optional else ""
         raise RunError(f"{key}={value!r}: must be an integer >= {low}{none}")
 
@@ -88,11 +87,11 @@ def _check_depth(source, cfg: Config) -> None:
                    if records is not None else
                    [] if dataset[int(indices[0])]["has_rgb"] else [dataset[int(indices[0])]["id"]])
         if missing:
-            raise RunError(f"--data {source.path}: {len(missing)} training frame(s) have no visible "
+            raise RunError(f"`data` {source.path}: {len(missing)} training frame(s) have no visible "
                            f"image (e.g. {missing[0]}), which stage2.preprocessing=rgb trains on; "
                            "use a dataset with rgb/ images")
     for i in indices:
         if dataset[int(i)]["valid"].any():
             return
-    raise RunError(f"--data {source.path}: none of the {len(indices)} Stage II training frames "
+    raise RunError(f"`data` {source.path}: none of the {len(indices)} Stage II training frames "
                    "has valid depth (every depth map is 0): nothing to learn from")

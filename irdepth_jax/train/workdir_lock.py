@@ -23,12 +23,14 @@ import socket
 import sys
 from collections.abc import Iterator
 
+from irdepth_jax.errors import IrdepthError, RunError
+
 LOCK_NAME = "irdepth.lock"
 PHASES = ("stage1_i1", "stage1_i2", "stage2")
 """Checkpoint directories of a workdir (``checkpoints/<phase>``), in training order."""
 
 
-class WorkdirLocked(ValueError):
+class WorkdirLocked(IrdepthError, ValueError):
     """The workdir is in use by another run (one-line message naming its pid and host)."""
 
 
@@ -162,7 +164,7 @@ def claim_workdir(workdir: str) -> Iterator[None]:
     removed: the workdir itself when this call created it, else the entries it added.
     """
     if os.path.exists(workdir) and not os.path.isdir(workdir):
-        raise ValueError(f"workdir {workdir} exists and is not a directory")
+        raise RunError(f"`workdir` {workdir}: exists and is not a directory")
     created = not os.path.exists(workdir)
     os.makedirs(workdir, exist_ok=True)
     before = set(os.listdir(workdir))

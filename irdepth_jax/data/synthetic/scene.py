@@ -14,8 +14,11 @@ that no fixed depth layout fits most frames.
 
 from __future__ import annotations
 
+import typing
+
 import numpy as np
 
+from irdepth_jax.config_schema import Scenes
 from irdepth_jax.data.synthetic.materials import (
     BIKE,
     BUILDING,
@@ -74,7 +77,7 @@ class Scene:
                     params=np.array(self.params, np.float32))
 
 
-SCENES = ("street", "varied")
+SCENES = typing.get_args(Scenes)
 """The scene distributions of `sample_scene` (module docstring)."""
 
 
