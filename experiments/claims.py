@@ -132,7 +132,7 @@ def _metric(values: np.ndarray, column: str) -> float:
     """The table's metric over per-frame values (F,), or of the pooled (F, C, C) confusion
     matrices for 'miou'."""
     if column == "miou":
-        from irdepth_jax.metrics import mean_iou
+        from irdepth_jax.image_metrics import mean_iou
 
         return float(mean_iou(values.sum(0).astype(np.float32)))
     return float(values.mean())

@@ -22,8 +22,8 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from irdepth_jax.image_metrics import entropy  # noqa: E402
 from irdepth_jax.imaging.tonemap import TONEMAPS  # noqa: E402
-from irdepth_jax.metrics import entropy  # noqa: E402
 
 DEFAULT_OUT = Path(__file__).resolve().parent / "results" / "tonemap_baselines.png"
 TITLES = {

@@ -19,7 +19,8 @@ import numpy as np
 
 from irdepth_jax.config import CLASS_NAMES, Config
 from irdepth_jax.data.source import device_batch
-from irdepth_jax.metrics import DepthMetricAccumulator, confusion_matrix, entropy, mean_iou, psnr, ssim
+from irdepth_jax.image_metrics import confusion_matrix, entropy, mean_iou, psnr, ssim
+from irdepth_jax.metrics import DepthMetricAccumulator
 from irdepth_jax.models.pipeline import run_pipeline, unet_outputs
 from irdepth_jax.train.parallel import DataParallel
 

@@ -14,7 +14,7 @@ LAYERS = [
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
     ("CPU training kernels", ["xla_cpu"]),
-    ("losses and metrics", ["losses", "metrics"]),
+    ("losses and metrics", ["losses", "metrics", "image_metrics"]),
     ("data", ["data"]),
     ("run directories and checkpoints", ["runs"]),
     ("training mechanics", ["train", "train.state", "train.steps", "train.parallel", "train.workdir_lock",

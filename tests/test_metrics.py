@@ -6,18 +6,8 @@ import numpy as np
 import pytest
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
-from irdepth_jax.metrics import (
-    DEPTH_METRICS,
-    DepthMetricAccumulator,
-    confusion_matrix,
-    depth_metrics,
-    entropy,
-    mean_iou,
-    per_class_iou,
-    per_image_depth_metrics,
-    psnr,
-    ssim,
-)
+from irdepth_jax.image_metrics import confusion_matrix, entropy, mean_iou, per_class_iou, psnr, ssim
+from irdepth_jax.metrics import DEPTH_METRICS, DepthMetricAccumulator, depth_metrics, per_image_depth_metrics
 
 
 def _hand_case():
