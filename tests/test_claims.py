@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from irdepth_experiments import claims
+from irdepth_experiments import claims, seed_stats
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 RESULTS = os.path.join(REPO, "experiments", "results")
@@ -47,16 +47,16 @@ def test_per_seed_differences_pool_confusion_matrices_for_miou():
 def test_seed_level_is_the_paired_t_test_worked_by_hand():
     """d = 0.1, 0.2, 0.3: mean 0.2, sd 0.1, se 0.1/sqrt(3); t = 3.4641 on 2 df; t_0.975,2 =
     4.302653 -> interval 0.2 ± 0.248414, p = 0.07418 (scipy's one-sample t-test agrees)."""
-    st = claims.seed_level(np.array([0.1, 0.2, 0.3]))
+    st = seed_stats.seed_level(np.array([0.1, 0.2, 0.3]))
     assert st["effect"] == pytest.approx(0.2)
     assert st["sd"] == pytest.approx(0.1)
     assert st["low"] == pytest.approx(0.2 - 0.248414, abs=1e-6)
     assert st["high"] == pytest.approx(0.2 + 0.248414, abs=1e-6)
     assert st["p"] == pytest.approx(0.07418, abs=1e-5)
     assert st["p"] == pytest.approx(stats.ttest_1samp([0.1, 0.2, 0.3], 0.0).pvalue)
-    one = claims.seed_level(np.array([0.3]))  # one seed: no interval
+    one = seed_stats.seed_level(np.array([0.3]))  # one seed: no interval
     assert math.isnan(one["p"]) and one["low"] == -math.inf and one["high"] == math.inf
-    same = claims.seed_level(np.array([0.25, 0.25, 0.25]))
+    same = seed_stats.seed_level(np.array([0.25, 0.25, 0.25]))
     assert same["p"] == 0.0 and same["low"] == same["high"] == 0.25
 
 
@@ -65,35 +65,35 @@ def test_detectable_effect_has_80_percent_power():
     above the normal-theory (t_0.975 + t_0.8) x se at few seeds and tends to 2.80 x se."""
     sd = 0.05
     for seeds in (3, 5, 10):
-        detect = claims.detectable_effect(sd, seeds)
-        assert claims.power(detect, sd, seeds) == pytest.approx(0.8, abs=1e-6)
+        detect = seed_stats.detectable_effect(sd, seeds)
+        assert seed_stats.power(detect, sd, seeds) == pytest.approx(0.8, abs=1e-6)
         se = sd / math.sqrt(seeds)
         approx = (stats.t.ppf(0.975, seeds - 1) + stats.t.ppf(0.8, seeds - 1)) * se
         assert approx < detect < 1.15 * approx
-    d = 0.05 * np.random.default_rng(0).standard_normal((4000, 3)) + claims.detectable_effect(sd, 3)
+    d = 0.05 * np.random.default_rng(0).standard_normal((4000, 3)) + seed_stats.detectable_effect(sd, 3)
     rejected = stats.ttest_1samp(d, 0.0, axis=1).pvalue < 0.05
     assert rejected.mean() == pytest.approx(0.8, abs=0.025)
     se = sd / math.sqrt(400)
-    assert claims.detectable_effect(sd, 400) == pytest.approx(2.8016 * se, rel=0.01)
-    assert claims.detectable_effect(sd, 1) == math.inf
+    assert seed_stats.detectable_effect(sd, 400) == pytest.approx(2.8016 * se, rel=0.01)
+    assert seed_stats.detectable_effect(sd, 1) == math.inf
 
 
 def test_seeds_needed_is_the_first_budget_with_enough_power():
     for effect, sd in ((0.02, 0.05), (0.1, 0.05), (0.3, 0.05)):
-        n = claims.seeds_needed(effect, sd)
-        assert claims.power(effect, sd, n) >= 0.8
-        assert n == 2 or claims.power(effect, sd, n - 1) < 0.8
-    assert claims.seeds_needed(-0.1, 0.05) is None
-    assert claims.seeds_needed(1e-6, 1.0) is None  # more than MAX_SEEDS
-    assert claims.seeds_needed(0.1, 0.0) == 2
+        n = seed_stats.seeds_needed(effect, sd)
+        assert seed_stats.power(effect, sd, n) >= 0.8
+        assert n == 2 or seed_stats.power(effect, sd, n - 1) < 0.8
+    assert seed_stats.seeds_needed(-0.1, 0.05) is None
+    assert seed_stats.seeds_needed(1e-6, 1.0) is None  # more than MAX_SEEDS
+    assert seed_stats.seeds_needed(0.1, 0.0) == 2
 
 
 def test_holm_worked_by_hand():
     """p = 0.01, 0.04, 0.03 (m = 3): 0.01 x 3 = 0.03; 0.03 x 2 = 0.06; 0.04 x 1 -> max(0.06,
     0.04) = 0.06. NaN (untested) is left out of m."""
-    np.testing.assert_allclose(claims.holm([0.01, 0.04, 0.03, math.nan])[:3], [0.03, 0.06, 0.06])
-    assert math.isnan(claims.holm([0.01, math.nan])[1])
-    assert claims.holm([0.6, 0.7]) == [1.0, 1.0]
+    np.testing.assert_allclose(seed_stats.holm([0.01, 0.04, 0.03, math.nan])[:3], [0.03, 0.06, 0.06])
+    assert math.isnan(seed_stats.holm([0.01, math.nan])[1])
+    assert seed_stats.holm([0.6, 0.7]) == [1.0, 1.0]
 
 
 def test_verdicts():
@@ -172,7 +172,7 @@ def test_the_interval_covers_the_true_effect_at_three_seeds():
     (Monte Carlo standard error 0.5 %), and is not needlessly wide (<= 97 %)."""
     covered = []
     for ours, base in _simulated_experiments(0.02, 2000):
-        st = claims.seed_level(claims.per_seed_differences(ours, base, "d1")[0])
+        st = seed_stats.seed_level(claims.per_seed_differences(ours, base, "d1")[0])
         covered.append(st["low"] <= 0.02 <= st["high"])
     assert 0.93 <= np.mean(covered) <= 0.97
 
@@ -190,8 +190,8 @@ def test_no_effect_rarely_gives_a_verdict_of_direction(family):
         rows = []
         for _claim in range(family):
             ours, base = next(experiments)
-            rows.append(claims.seed_level(claims.per_seed_differences(ours, base, "d1")[0]))
-        for st, p_holm in zip(rows, claims.holm([st["p"] for st in rows])):
+            rows.append(seed_stats.seed_level(claims.per_seed_differences(ours, base, "d1")[0]))
+        for st, p_holm in zip(rows, seed_stats.holm([st["p"] for st in rows])):
             directional += claims.verdict({**st, "p_holm": p_holm}, 0.02, 0.01) in ("reproduced", "opposite")
     rate = directional / (sims * family)
     bound = 0.05 + (2.6 * math.sqrt(0.05 * 0.95 / 6000) if family == 1 else 0.0)
