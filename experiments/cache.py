@@ -43,6 +43,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from irdepth_experiments import run_metrics
 from irdepth_jax.compile_cache import enable_compilation_cache
 
 REPO = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -242,8 +243,13 @@ class Context:
         self.log(f"[{kind} seed {seed}] evaluating on {self.eval_info['path']} "
                  f"({self.protocol.name} protocol)")
         started = time.time()
-        evaluate = self._eval_stage1 if kind.startswith("stage1") else self._eval_stage2
-        metrics, frames = evaluate(cfg, workdir)
+        dataset, indices = self._eval_frames()
+        if kind.startswith("stage1"):
+            metrics, frames = run_metrics.stage1_metrics(cfg, workdir, dataset, indices,
+                                                         self.eval_source.seg_frames(EVAL_SPLIT))
+        else:
+            metrics, frames = run_metrics.stage2_metrics(cfg, workdir, dataset, indices,
+                                                         self.protocol.align, self.source.max_depth())
         record = {**metrics, "protocol": dataclasses.asdict(self.protocol), "split": EVAL_SPLIT,
                   "eval_data": self.eval_info["path"], "run": os.path.basename(workdir),
                   "train_wall_s": train_wall_s, "eval_wall_s": round(time.time() - started, 1)}
@@ -380,46 +386,6 @@ class Context:
         if len(indices) == 0:
             raise SystemExit(f"{self.eval_info['path']}: no {EVAL_SPLIT} frames")
         return dataset, indices
-
-    def _eval_stage1(self, cfg, workdir: str) -> tuple[dict, dict]:
-        """Stage I metrics: reconstruction on the depth test frames, mIoU (tables 3 and 6) on
-        the segmentation test frames (the paper's independent 600/100/100 split)."""
-        from irdepth_jax.evaluators import evaluate_stage1
-        from irdepth_jax.runs.variables import load_stage1
-        from irdepth_jax.train.parallel import DataParallel
-
-        unet, _ = load_stage1(workdir, cfg)
-        dataset, indices = self._eval_frames()
-        metrics, frames = evaluate_stage1(cfg, unet, dataset, indices, DataParallel("single"),
-                                          seg_frames=self.eval_source.seg_frames(EVAL_SPLIT),
-                                          per_frame=True)
-        return {"stage1": metrics}, frames
-
-    def _eval_stage2(self, cfg, workdir: str) -> tuple[dict, dict]:
-        """Depth metrics under the protocol's alignment ('stage2') and median-scaled per image
-        ('stage2_median'), from one prediction per frame; 'stage2' also holds the sky metrics
-        (`metrics.SKY_METRICS`, on the labelled frames, against the run's sky reference depth)."""
-        from irdepth_jax.evaluators import accumulate_depth
-        from irdepth_jax.metrics import DepthMetricAccumulator, SkyMetricAccumulator
-        from irdepth_jax.runs.variables import load_model
-        from irdepth_jax.train.parallel import DataParallel
-        from irdepth_jax.train.stages import sky_reference_depth
-
-        _, _, model = load_model(workdir, [])
-        dataset, indices = self._eval_frames()
-        accs = {key: DepthMetricAccumulator(align, cfg.data.min_depth, cfg.data.max_depth,
-                                            keep_per_image=True)
-                for key, align in (("stage2", self.protocol.align), ("stage2_median", "median"))}
-        sky = SkyMetricAccumulator(sky_reference_depth(cfg, self.source.max_depth()),
-                                   min_depth=cfg.data.min_depth, max_depth=cfg.data.max_depth)
-        accumulate_depth(cfg, model["unet"], model["depth"], dataset, indices,
-                         DataParallel("single"), list(accs.values()), [sky])
-        frames = {f"{key}/{k}": v for key, acc in accs.items() for k, v in acc.per_image().items()}
-        frames.update({f"stage2/{k}": v for k, v in sky.per_image().items()})
-        metrics = {key: acc.result() for key, acc in accs.items()}
-        for group, values in sky.result().items():
-            metrics["stage2"].setdefault(group, {}).update(values)
-        return metrics, frames
 
 
 EVAL_METRICS_VERSION = 2
