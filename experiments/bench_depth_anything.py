@@ -252,7 +252,8 @@ def bench_pair(name, timers, flops, repeats, warmup, batch) -> dict:
     return row
 
 
-def main(argv=None) -> dict:
+def _parse_args(argv) -> argparse.Namespace:
+    """The command line (`--help` explains it)."""
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--encoder", default="vits", help="vits | vitb | vitl | vitg | small | tiny")
@@ -283,7 +284,27 @@ def main(argv=None) -> dict:
                         help="leave glibc's malloc as it is in both sides' processes (default: both "
                              "keep freed memory for reuse, irdepth_jax.hostmem)")
     parser.add_argument("--json", metavar="FILE", help="also write the figures to FILE")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
+
+
+def _print_table(rows: list[dict], peak: float) -> None:
+    """Prints one line per row (and adds its share of the matmul `peak` as 'peak_pct')."""
+    print(f"{'kind':>10} | {'reference':>12} | {'size':>9} | batch | ours ms | theirs ms | ours/theirs "
+          f"| GFLOP/s | % peak | compile s | max diff")
+    for r in rows:
+        r["peak_pct"] = 100 * r["ours_gflops"] / peak
+        cells = [f"{r['kind']:>10}", f"{r['reference']:>12}", f"{r['size'][0]:>4}x{r['size'][1]:<4}",
+                 f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}"]
+        for key, spec, width in (("theirs_ms", ".1f", 9), ("ours_over_theirs", ".2f", 11)):
+            cells.append(f"{r[key]:>{width}{spec}}" if key in r else f"{'-':>{width}}")
+        cells += [f"{r['ours_gflops']:>7.1f}", f"{r['peak_pct']:>6.0f}", f"{r['compile_s']:>9.1f}"]
+        diff = r.get("max_diff_over_max")  # None: nothing to compare (train step, --no-torch)
+        cells.append(f"{'-':>8}" if diff is None else f"{diff:>8.1e}")
+        print(" | ".join(cells))
+
+
+def main(argv=None) -> dict:
+    args = _parse_args(argv)
     with_torch = not args.no_torch
     summary = {"encoder": args.encoder, "dtype": args.dtype, "amp": args.amp, "threads": args.threads,
                "processes": "one per side (Worker)", "keep_freed_memory": not args.default_malloc,
@@ -346,19 +367,7 @@ def main(argv=None) -> dict:
                 rows.append(row)
             stack.close()
 
-    peak = summary["matmul_peak"]["xla_gflops"]
-    print(f"{'kind':>10} | {'reference':>12} | {'size':>9} | batch | ours ms | theirs ms | ours/theirs "
-          f"| GFLOP/s | % peak | compile s | max diff")
-    for r in rows:
-        r["peak_pct"] = 100 * r["ours_gflops"] / peak
-        cells = [f"{r['kind']:>10}", f"{r['reference']:>12}", f"{r['size'][0]:>4}x{r['size'][1]:<4}",
-                 f"{r['batch']:>5}", f"{r['ours_ms']:>7.1f}"]
-        for key, spec, width in (("theirs_ms", ".1f", 9), ("ours_over_theirs", ".2f", 11)):
-            cells.append(f"{r[key]:>{width}{spec}}" if key in r else f"{'-':>{width}}")
-        cells += [f"{r['ours_gflops']:>7.1f}", f"{r['peak_pct']:>6.0f}", f"{r['compile_s']:>9.1f}"]
-        diff = r.get("max_diff_over_max")  # None: nothing to compare (train step, --no-torch)
-        cells.append(f"{'-':>8}" if diff is None else f"{diff:>8.1e}")
-        print(" | ".join(cells))
+    _print_table(rows, summary["matmul_peak"]["xla_gflops"])
     summary.update(results=rows)
     write_json(args.json, summary)
     return summary
