@@ -212,9 +212,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     ctx = runner.context(args.preset, overrides=args.overrides, cache=args.cache,
                          progress=not args.no_progress)
+    ctx.use_pretraining_set(RECIPE.frames)
+    for image in args.images:
+        record = ctx.result("depth", RECIPE.overrides(image), RECIPE.seed)
+        print(f"{image}: delta<1.25 {record['stage2']['all']['d1']:.4f} on {record['eval_data']} "
+              f"(run {record['run']})")
     gate = pretraining_gate(ctx) if set(args.images) == {"rgb", "blank"} else None
     if gate is not None:
         print(json.dumps(gate, indent=2))
+    else:
+        print("gate 1 needs both networks (--images rgb blank)")
     if args.commit:
         command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
         for path in commit_networks(ctx, command=command, images=args.images):

@@ -33,7 +33,6 @@ def add_parser(sub) -> None:
     """The `irdepth predict` sub-command."""
     from irdepth_jax.predict_settings import DEFAULT_BATCH, DEFAULT_FPS
 
-
     p = sub.add_parser("predict", help="depth maps from raw thermal frames",
                        description="Run a trained model on raw thermal frames: 16-bit PNG, "
                                    "16-bit TIFF (multi-page: one frame per page), .npy ((H, W) "
