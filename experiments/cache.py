@@ -189,8 +189,10 @@ class Context:
     # ---------------------------------------------------------------- configs
     def config(self, kind: str, overrides: tuple[str, ...], seed: int):
         """The run config of a row (`kind`, its `overrides`) for `seed` (Stage I runs normalise
-        the Stage II / depth sections to the base config's, so every table shares them)."""
-        from irdepth_jax.config import apply_overrides
+        the Stage II / depth sections to the base config's, so every table shares them; depth
+        pretraining runs the UNet / Stage I sections to the preset's, so the tables' Stage I
+        settings share one pretrained network)."""
+        from irdepth_jax.config import apply_overrides, get_config
 
         try:
             cfg = apply_overrides(dataclasses.replace(self.base, seed=seed), list(overrides))
@@ -200,6 +202,9 @@ class Context:
             cfg = self.stage1_config(cfg)
         if kind == "stage1_i1":
             cfg = i1_config(cfg, self.base)
+        if kind == "depth":  # trains no UNet: one pretrained network whatever the Stage I settings
+            preset = get_config(self.args.preset)
+            cfg = dataclasses.replace(cfg, unet=preset.unet, stage1=preset.stage1)
         if kind == "stage2" and self.stage2_depth_checkpoint is not None:
             cfg = dataclasses.replace(cfg, depth=dataclasses.replace(
                 cfg.depth, checkpoint=self.stage2_depth_checkpoint))

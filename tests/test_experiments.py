@@ -340,6 +340,11 @@ def test_pretrained_depth_network_plumbing(quick_cache, monkeypatch):
     monkeypatch.setattr(ctx, "cache", "/elsewhere/cache")
     assert os.path.basename(ctx.run_dir("stage2", moved)) == key
 
+    recipe = depth_network.QUICK_RECIPE
+    keys = [os.path.basename(c.run_dir("depth", c.config("depth", recipe.overrides("rgb"), 0), "pretraining"))
+            for c in (ctx, runner.context(quick=True, cache=quick_cache, overrides=["stage1.steps_i2=5"]))]
+    assert keys[0] == keys[1]  # depth runs train no UNet: the Stage I settings are not in their key
+
     assert depth_network.gate_passed(0.90, 0.70, 0.40) and depth_network.gate_passed(0.85, 0.70, 0.40)
     assert not depth_network.gate_passed(0.84, 0.30, 0.30)  # below 0.85
     assert not depth_network.gate_passed(0.90, 0.76, 0.40)  # less than 0.15 above blank
@@ -374,38 +379,50 @@ def test_a_committed_run_is_copied_into_the_cache_instead_of_trained(quick_cache
 
 
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
-    """`depth_network.commit_networks`: the pretrained network's run keeps its records and its last
-    checkpoint's weights (no `train` item, no earlier step); the blank control's only its records;
-    each gets a MADE_BY.md with the command and its delta<1.25."""
+    """`depth_network.commit_networks`: every phase of both networks keeps its records, with
+    paths inside the cache made relative to it; the pretrained network's last phase also its
+    last checkpoint's weights (no `train` item, no earlier step), no other run any; each gets a
+    MADE_BY.md with the command and its delta<1.25."""
     from irdepth_experiments import depth_network
 
+    cache = tmp_path / "cache"
     records = {}
     for image, d1 in (("rgb", 0.9), ("blank", 0.4)):
-        run = tmp_path / "cache" / "runs" / f"depth-{image}"
-        for step in ("5", "10"):
-            for item in ("model", "train", "meta"):
-                (run / "checkpoints" / "stage2" / step / item).mkdir(parents=True)
-                (run / "checkpoints" / "stage2" / step / item / "data").write_text(item)
-        for name in ("config.json", "trained.json", "metrics.jsonl", "eval-abc.json", "eval-abc.npz"):
-            (run / name).write_text("{}")
-        (run / "tb").mkdir()
-        records[image] = {"run": run.name, "eval_data": "eval", "stage2": {"all": {"d1": d1}}}
+        for phase in (1, 2):
+            run = cache / "runs" / f"depth-{image}-{phase}"
+            for step in ("5", "10"):
+                for item in ("model", "train", "meta"):
+                    (run / "checkpoints" / "stage2" / step / item).mkdir(parents=True)
+                    (run / "checkpoints" / "stage2" / step / item / "data").write_text(item)
+            for name in ("trained.json", "metrics.jsonl", "eval-abc.json", "eval-abc.npz"):
+                (run / name).write_text("{}")
+            checkpoint = json.dumps(str(cache / "runs" / f"depth-{image}-1") if phase == 2 else None)
+            (run / "config.json").write_text(f'{{"depth": {{"checkpoint": {checkpoint}}}}}')
+            (run / "tb").mkdir()
+            records[image, phase] = {"run": run.name, "eval_data": "eval",
+                                     "stage2": {"all": {"d1": d1 - 0.1 * (phase == 1)}}}
     info = {"height": 8, "width": 8, "scenes": "varied", "seed": 2, "made_by": "rendered"}
-    ctx = types.SimpleNamespace(
-        cache=str(tmp_path / "cache"), use_pretraining_set=lambda frames: info,
-        result=lambda kind, overrides, seed: records["blank" if "stage2.preprocessing=blank" in overrides
-                                                     else "rgb"])
+
+    def result(kind, overrides, seed):
+        image = "blank" if "stage2.preprocessing=blank" in overrides else "rgb"
+        return records[image, 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1]
+
+    ctx = types.SimpleNamespace(cache=str(cache), use_pretraining_set=lambda frames: info, result=result)
     written = depth_network.commit_networks(ctx, into=str(tmp_path / "committed"), command="CMD")
-    rgb, blank = (tmp_path / "committed" / f"depth-{image}" for image in ("rgb", "blank"))
-    assert written == [str(rgb), str(blank)]
+    committed = {(image, phase): tmp_path / "committed" / f"depth-{image}-{phase}"
+                 for image in ("rgb", "blank") for phase in (1, 2)}
+    assert written == [str(committed[key]) for key in (("rgb", 1), ("rgb", 2), ("blank", 1), ("blank", 2))]
     kept = ["MADE_BY.md", "config.json", "eval-abc.json", "eval-abc.npz", "metrics.jsonl", "trained.json"]
-    assert sorted(os.listdir(blank)) == kept
-    assert sorted(os.listdir(rgb)) == sorted(kept + ["checkpoints"])
+    for key, path in committed.items():
+        assert sorted(os.listdir(path)) == sorted(kept + (["checkpoints"] if key == ("rgb", 2) else [])), key
+    rgb = committed["rgb", 2]
     assert os.listdir(rgb / "checkpoints" / "stage2") == ["10"]
     assert sorted(os.listdir(rgb / "checkpoints" / "stage2" / "10")) == ["meta", "model"]
+    assert json.loads((rgb / "config.json").read_text())["depth"]["checkpoint"] == "runs/depth-rgb-1"
     made_by = (rgb / "MADE_BY.md").read_text()
     assert "`CMD`" in made_by and "0.9000" in made_by and "blank: the same on a constant grey image with" in made_by
-    assert "0.4000" in (blank / "MADE_BY.md").read_text()
+    assert "phase 2 of 2" in made_by and "then 8000 steps from it" in made_by
+    assert "0.3000" in (committed["blank", 1] / "MADE_BY.md").read_text()
 
 
 def test_layout_bound_worked_by_hand():

@@ -188,3 +188,29 @@ def test_16_bit_counts_are_normalised_once_by_the_pipeline_to_their_full_scale(r
         np.testing.assert_allclose(got[key], want[key], atol=2e-5, err_msg=key)
     # a 14-bit reading would clip every one of these counts to 1: a flat image, no gradient
     assert (counts / (2**14 - 1)).min() > 1.0 and float(got["input_gradient"].max()) > 0.1
+
+
+def test_blank_control_runs_the_network_once_with_the_full_batch_loss_and_gradient(frames):
+    """stage2.preprocessing=blank: the depth network runs on one frame and its map is repeated;
+    the loss and its gradient equal the full batch's through the network (another
+    preprocessing, same image), and a batch whose images differ gives NaN, not a wrong map."""
+    blank = host_image({"raw14": frames["raw14"]}, "blank")
+    batch = {"raw14": frames["raw14"], "depth": frames["depth"], "valid": frames["valid"],
+             "image": blank}
+    grad_fns, results, flops = {}, {}, {}
+    for preprocessing in ("blank", "rgb"):  # 'rgb' runs the network on every frame
+        cfg = apply_overrides(CFG, [f"stage2.preprocessing={preprocessing}", "stage2.sky_loss=false"])
+        loss_fn = stage2_loss_fn(cfg, 70.0)
+        grad_fns[preprocessing] = jax.jit(jax.value_and_grad(lambda p, b, f=loss_fn: f(p, {}, None, b, None)[0]))
+        params = random_depth(cfg)
+        flops[preprocessing] = grad_fns[preprocessing].lower(params, batch).cost_analysis()["flops"]
+        results[preprocessing] = grad_fns[preprocessing](params, batch)
+    assert flops["blank"] < 0.6 * flops["rgb"]  # one frame of two through the network
+    (loss_blank, g_blank), (loss_full, g_full) = results["blank"], results["rgb"]
+    assert float(loss_blank) == pytest.approx(float(loss_full), rel=1e-5)
+    for a, b in zip(jax.tree.leaves(g_blank), jax.tree.leaves(g_full), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=2e-4, atol=1e-7)
+    mixed = blank.copy()
+    mixed[1] = 0
+    loss_mixed, _ = grad_fns["blank"](params, {**batch, "image": mixed})
+    assert np.isnan(float(loss_mixed))

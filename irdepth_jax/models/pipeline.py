@@ -107,7 +107,8 @@ def pipeline_outputs(unet_vars: dict | None, da_params: Any, raw: jax.Array | No
       raw: (B, H, W) uint16 raw counts of `cfg.data.raw_bits` bits (None without a UNet).
       cfg: the run's config; `stage2.preprocessing` picks the depth network's input image.
       image: (B, H, W, 3) uint8 input image of a non-HSV model (a tone-mapping baseline made on
-        the host, `data.source.host_image`, or a visible frame); unused by HSV models.
+        the host, `data.source.host_image`, or a visible frame); unused by HSV models. For
+        'blank' every frame's image must be the same (else the depth is NaN).
       brightness: optional (B,) brightness-augmentation factors (training; see `unet_input`).
     Returns:
       dict: ``depth`` (B, H, W) float32 metres (None without `da_params`); ``rgb`` (B, H, W, 3)
@@ -133,7 +134,18 @@ def pipeline_outputs(unet_vars: dict | None, da_params: Any, raw: jax.Array | No
         raise ValueError(f"stage2.preprocessing={cfg.stage2.preprocessing}: the input image is "
                          "made on the host; pass it as `image` (B, H, W, 3) uint8")
     rgb = jax.lax.stop_gradient(rgb)
-    depth = None if da_params is None else depth_from_rgb(da_params, rgb, cfg)
+    if da_params is None:
+        depth = None
+    elif cfg.stage2.preprocessing == "blank":
+        # Every frame's input is the same grey image, so every frame gets the same map: the
+        # network runs once (the blank control trains batch-size times faster) and the map is
+        # repeated, whose gradient sums the frames' as the full batch's would. An image that is
+        # not one constant image gives NaN (the training's finiteness check stops) rather than
+        # a wrong map.
+        one = jnp.broadcast_to(depth_from_rgb(da_params, rgb[:1], cfg), rgb.shape[:3])
+        depth = jnp.where(jnp.all(rgb == rgb[:1]), one, jnp.nan)
+    else:
+        depth = depth_from_rgb(da_params, rgb, cfg)
     return {"depth": depth, "rgb": rgb, "hsv": hsv, "seg": seg, "sky": sky}
 
 
