@@ -62,8 +62,17 @@ class Predictor:
         if not hasattr(run_pipeline, "lower"):  # a stand-in function (tests): nothing to compile
             self._compiled[(batch, *shape)] = functools.partial(run_pipeline, cfg=self.cfg)
             return
+        import jax
+
+        from irdepth_jax.config import to_dict
+        from irdepth_jax.models.pipeline import pipeline_outputs
+        from irdepth_jax.program_cache import cached_export
+
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
-        compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
+        # the exported program of a warm start is not traced again (`program_cache`)
+        exported = cached_export("pipeline", to_dict(self.cfg),
+                                 jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)), args, kwargs)
+        compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
             frames = f"a batch of {batch} frames" if batch > 1 else "one frame"

@@ -23,6 +23,7 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:
     # the variable: all share one cache) and removed when it exits
     _cache = tempfile.mkdtemp(prefix="irdepth_test_xla_")
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)
+    atexit.register(shutil.rmtree, _cache + "-programs", ignore_errors=True)  # irdepth_jax.program_cache
     os.environ["JAX_COMPILATION_CACHE_DIR"] = _cache
 
 import jax  # noqa: E402  (must come after the flags above)

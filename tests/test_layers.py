@@ -10,7 +10,7 @@ PACKAGE = pathlib.Path(__file__).resolve().parents[1] / "irdepth_jax"
 
 LAYERS = [
     ("foundation", ["config_schema", "configs", "config", "errors", "fileio", "video", "compile_cache",
-                    "hostmem"]),
+                    "program_cache", "hostmem"]),
     ("imaging", ["imaging"]),
     ("models", ["models", "weights"]),
     ("CPU training kernels", ["xla_cpu"]),

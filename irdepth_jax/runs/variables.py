@@ -12,10 +12,11 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 
-from irdepth_jax.config import STAGE1_IMAGES, STAGE1_MODEL_KEYS, Config, from_dict, get_key, with_keys
+from irdepth_jax.config import STAGE1_IMAGES, STAGE1_MODEL_KEYS, Config, from_dict, get_key, to_dict, with_keys
 from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
+from irdepth_jax.program_cache import cached_shapes
 from irdepth_jax.runs.checkpoint import CheckpointError, find_checkpoint, read_meta, restore_items
 
 STAGE1_STAGES = ("stage1_i2", "stage1_i1")
@@ -53,15 +54,17 @@ def random_depth(cfg: Config) -> dict:
 
 
 def unet_shapes(cfg: Config) -> dict:
-    """`init_unet`'s tree as ShapeDtypeStructs (traced, not compiled or run): the template a
-    Stage I model is restored into."""
-    return jax.eval_shape(lambda: init_unet(cfg))
+    """`init_unet`'s tree as ShapeDtypeStructs (traced, not compiled or run; kept in the
+    program cache, `program_cache.cached_shapes`): the template a Stage I model is restored
+    into."""
+    return cached_shapes("unet_shapes", to_dict(cfg), lambda: jax.eval_shape(lambda: init_unet(cfg)))
 
 
 def depth_shapes(cfg: Config) -> dict:
-    """`random_depth`'s tree as ShapeDtypeStructs: the template Depth Anything V2 params are
-    restored into."""
-    return jax.eval_shape(lambda: random_depth(cfg))
+    """`random_depth`'s tree as ShapeDtypeStructs (as `unet_shapes`): the template Depth
+    Anything V2 params are restored into."""
+    return cached_shapes("depth_shapes", to_dict(cfg),
+                         lambda: jax.eval_shape(lambda: random_depth(cfg)))
 
 
 def init_depth(cfg: Config) -> tuple[dict, dict[str, str]]:

@@ -1,0 +1,110 @@
+"""`program_cache`: a warm start reads the models' shapes and the exported pipeline instead of
+tracing them, computes what the traced program computes, and never serves an entry made by other
+source code or for other arguments."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from irdepth_jax import program_cache
+from irdepth_jax.compile_cache import enable_compilation_cache
+from irdepth_jax.config import apply_overrides, get_config, to_dict
+from irdepth_jax.runs.variables import depth_shapes, init_unet, random_depth
+
+CFG = apply_overrides(get_config("tiny"), ["stage2.preprocessing=he", "stage2.sky_loss=false"])
+
+
+@pytest.fixture
+def cache_dir(tmp_path):
+    """The compilation cache (and so the program cache) in `tmp_path` for one test."""
+    before = jax.config.jax_compilation_cache_dir, jax.config.jax_enable_compilation_cache
+    enable_compilation_cache(str(tmp_path / "xla"))
+    yield tmp_path / "xla-programs"
+    enable_compilation_cache(before[0] if before[1] else None)
+
+
+def test_shapes_are_traced_once_then_read(cache_dir, monkeypatch):
+    made = []
+
+    def make():
+        made.append(1)
+        return jax.eval_shape(lambda: init_unet(CFG))
+
+    first = program_cache.cached_shapes("unet_shapes", to_dict(CFG), make)
+    again = program_cache.cached_shapes("unet_shapes", to_dict(CFG), make)
+    assert len(made) == 1 and jax.tree.structure(again) == jax.tree.structure(first)
+    assert jax.tree.leaves(again) == jax.tree.leaves(first)  # shapes and dtypes
+    other = apply_overrides(CFG, ["seed=5"])
+    program_cache.cached_shapes("unet_shapes", to_dict(other), make)
+    assert len(made) == 2  # another config: another entry
+    monkeypatch.setattr(program_cache, "source_digest", lambda: "other source")
+    program_cache.cached_shapes("unet_shapes", to_dict(CFG), make)
+    assert len(made) == 3  # another source: another entry
+    for entry in cache_dir.iterdir():
+        entry.write_text("{damaged")
+    program_cache.cached_shapes("unet_shapes", to_dict(CFG), make)
+    assert len(made) == 4  # a damaged entry is made again
+    assert depth_shapes(CFG) == jax.eval_shape(lambda: random_depth(CFG))  # the library's use
+
+
+def test_exported_program_is_read_and_computes_what_the_traced_one_does(cache_dir, monkeypatch):
+    exported = []
+    export = jax.export.export
+    monkeypatch.setattr(jax.export, "export", lambda fn: exported.append(1) or export(fn))
+
+    @jax.jit
+    def fn(x, scale=None):
+        return {"y": jnp.tanh(x) * scale, "none": None}
+
+    x, scale = jnp.arange(6.0).reshape(2, 3), jnp.float32(3.0)
+    first = program_cache.cached_export("fn", {"k": 1}, fn, (x,), {"scale": scale})
+    again = program_cache.cached_export("fn", {"k": 1}, fn, (x,), {"scale": scale})
+    assert len(exported) == 1
+    out = jax.jit(again.call)(x, scale=scale)
+    np.testing.assert_array_equal(np.asarray(out["y"]), np.asarray(fn(x, scale=scale)["y"]))
+    assert out["none"] is None and first.in_avals == again.in_avals
+    program_cache.cached_export("fn", {"k": 1}, fn, (x[:1],), {"scale": scale})
+    assert len(exported) == 2  # another shape: exported
+    program_cache.cached_export("fn", {"k": 2}, fn, (x,), {"scale": scale})
+    assert len(exported) == 3  # made from something else: exported
+    for entry in cache_dir.glob("*.jaxexport"):
+        entry.write_bytes(b"damaged")
+    program_cache.cached_export("fn", {"k": 1}, fn, (x,), {"scale": scale})
+    assert len(exported) == 4
+
+
+def test_off_without_the_compilation_cache(tmp_path):
+    before = jax.config.jax_compilation_cache_dir, jax.config.jax_enable_compilation_cache
+    enable_compilation_cache(None)
+    try:
+        assert program_cache.directory() is None
+        made = []
+        tree = {"a": jax.ShapeDtypeStruct((1,), jnp.float32)}
+        for _ in range(2):
+            program_cache.cached_shapes("s", {}, lambda: made.append(1) or tree)
+        assert len(made) == 2
+    finally:
+        enable_compilation_cache(before[0] if before[1] else None)
+
+
+def test_predictor_from_the_program_cache_matches_run_pipeline(cache_dir, monkeypatch):
+    """`irdepth predict`'s model side: a second Predictor (a warm start) traces no pipeline and
+    its depth equals `run_pipeline`'s."""
+    from irdepth_jax.models import pipeline
+    from irdepth_jax.predict_runner import Predictor
+
+    model = {"unet": None, "depth": random_depth(CFG)}
+    raw = np.random.default_rng(0).integers(0, 2**14, (1, 32, 48)).astype(np.uint16)
+    Predictor(CFG, model, 14).dispatch(raw)
+    traces = []
+    original = pipeline.pipeline_outputs
+    monkeypatch.setattr(pipeline, "pipeline_outputs", lambda *a, **k: traces.append(1) or original(*a, **k))
+    depth = np.asarray(Predictor(CFG, model, 14).dispatch(raw)["depth"])
+    assert traces == []
+    monkeypatch.undo()
+    from irdepth_jax.data.source import host_image
+
+    image = jnp.asarray(host_image({"raw14": raw}, "he"))
+    expected = pipeline.run_pipeline(None, model["depth"], None, CFG, image=image)
+    np.testing.assert_allclose(depth, np.asarray(expected["depth"]), rtol=1e-6, atol=1e-6)
