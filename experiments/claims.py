@@ -51,7 +51,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.depth_network import GATE_HSV_MARGIN, GATE_STAGE1_MIOU
+from irdepth_experiments.depth_network import GATE_HSV_MARGIN, GATE_RECORD, GATE_STAGE1_MIOU
 from irdepth_experiments.report import COLUMN_NAMES, HIGHER_IS_BETTER
 from irdepth_experiments.runner import RECON_COLUMNS, RESULTS
 from irdepth_experiments.seed_stats import ALPHA, POWER, detectable_effect, holm, seed_level, seeds_needed
@@ -223,7 +223,7 @@ def _seed_mean(row: dict, column: str) -> float:
 def depth_gates(records: dict[str, dict]) -> dict:
     """The gates every depth claim must pass (module docstring): {'pretraining': {...,
     'passed'}, 'stage1': {'miou', 'passed', ...}, 'depth_network': the depth tables' pretraining
-    record or None}."""
+    record or None, 'pretrained_network': `committed_network` with 'used_by_tables', or None}."""
     networks = [records[t].get("depth_network") for t in DEPTH_TABLES if t in records]
     network = networks[0] if networks and all(n == networks[0] for n in networks) else None
     if network is not None:
@@ -241,8 +241,23 @@ def depth_gates(records: dict[str, dict]) -> dict:
         stage1 |= {"miou": round(miou, 4), "passed": miou >= GATE_STAGE1_MIOU,
                    "why": f"{STAGE1_TABLE} '{STAGE1_ROW}' mIoU {miou:.3f} (mean over seeds); "
                           f"the gate is >= {GATE_STAGE1_MIOU}"}
+    committed = committed_network()
+    if committed is not None:
+        committed["used_by_tables"] = network is not None and all(
+            network.get(k) == committed[k] for k in ("rgb_d1", "blank_d1", "made_by"))
     return {"pretraining": pretraining, "stage1": stage1, "depth_network": network,
-            "control_margin_d1": GATE_HSV_MARGIN}
+            "control_margin_d1": GATE_HSV_MARGIN, "pretrained_network": committed}
+
+
+def committed_network(path: str = GATE_RECORD) -> dict | None:
+    """Gate 1 of the committed pretrained network as `depth_network.py --commit` measured it
+    (`depth_gates` adds 'used_by_tables'); None before one is committed."""
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        record = json.load(f)
+    return {k: record.get(k) for k in ("rgb_d1", "blank_d1", "layout_bound_d1", "phase_d1", "passed",
+                                       "rule", "made_by", "command", "date")}
 
 
 def blank_control_gate(c: Claim, record: dict) -> dict:
@@ -367,6 +382,14 @@ def claims_markdown(records: dict[str, dict], rows: list[dict]) -> str:
               f"({gates['pretraining']['why']}"
               + (f"; measured δ<1.25 {network['rgb_d1']:.3f} on visible images, blank "
                  f"{network['blank_d1']:.3f}" if network else "") + ")",
+              *([f"- the committed pretrained network (experiments/pretrained, "
+                 f"{gates['pretrained_network']['date']}): gate 1 "
+                 f"{'passed' if gates['pretrained_network']['passed'] else 'FAILED'}, δ<1.25 "
+                 f"{gates['pretrained_network']['rgb_d1']:.3f} on visible images, blank "
+                 f"{gates['pretrained_network']['blank_d1']:.3f}, layout bound "
+                 f"{gates['pretrained_network']['layout_bound_d1']:.3f}"
+                 + ("" if gates["pretrained_network"]["used_by_tables"] else "; these tables did "
+                    "not start from it")] if gates["pretrained_network"] else []),
               f"- Stage I: {'passed' if gates['stage1']['passed'] else 'FAILED'} "
               f"({gates['stage1']['why']})",
               f"- blank-image control: each depth claim's row must beat its table's "

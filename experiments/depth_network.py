@@ -27,6 +27,7 @@ import json
 import os
 import shutil
 import sys
+import time
 from collections.abc import Sequence
 
 import numpy as np
@@ -39,6 +40,8 @@ GATE_STAGE1_MIOU = 0.6
 GATE_HSV_MARGIN = 0.10
 GATE_BLANK_HEALTHY = 0.8
 LAYOUT_TRAIN_FRAMES = 400  # training frames the layout bound is fitted on (every k-th)
+GATE_RECORD = os.path.join(REPO, "experiments", "results", "depth_network.json")
+"""Gate 1 as measured by ``--commit`` on the committed networks (`claims.json` shows it)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -269,9 +272,17 @@ def main(argv: Sequence[str] | None = None) -> dict:
     else:
         print("gate 1 needs both networks (--images rgb blank)")
     if args.commit:
+        from irdepth_experiments.report import git_commit, hardware
+
         command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
         for path in commit_networks(ctx, command=command, images=args.images):
             print(f"wrote {os.path.relpath(path, REPO)}")
+        if gate is not None:
+            record = {**gate, "command": command, "git": git_commit(), "hardware": hardware(),
+                      "date": time.strftime("%Y-%m-%d")}
+            with open(GATE_RECORD, "w") as f:
+                f.write(json.dumps(record, indent=2).replace(ctx.cache.rstrip(os.sep) + os.sep, "") + "\n")
+            print(f"wrote {os.path.relpath(GATE_RECORD, REPO)}")
     return gate
 
 

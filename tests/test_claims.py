@@ -1,6 +1,7 @@
 """experiments/claims.py: seed-level inference, its calibration by simulation, and the committed
 claims.json against a recomputation from the committed per-frame results."""
 
+import functools
 import json
 import math
 import os
@@ -150,6 +151,28 @@ def test_depth_claims_are_undecidable_unless_every_gate_passes():
     table2 = claims.Claim("table2_multitask_reconstruction", "", ("a", "all"), ("b", "all"), "ssim",
                           ("a", "b"))
     assert claims._undecidable(table2, {}, claims.depth_gates({})) is None
+
+
+def test_the_committed_pretrained_network_is_shown_and_whether_the_tables_used_it(tmp_path, monkeypatch):
+    """claims.json's `depth_network.pretrained_network`: gate 1 as `depth_network.py --commit`
+    recorded it, 'used_by_tables' only when the depth tables' network is that one; claims.md
+    says it; absent before a network is committed."""
+    record = {"rgb_d1": 0.86, "blank_d1": 0.31, "layout_bound_d1": 0.34, "phase_d1": {}, "passed": True,
+              "rule": "r", "made_by": "m", "command": "c", "date": "2026-12-07", "git": "g"}
+    path = tmp_path / "depth_network.json"
+    monkeypatch.setattr(claims, "committed_network", functools.partial(claims.committed_network, str(path)))
+    assert claims.depth_gates({})["pretrained_network"] is None
+    path.write_text(json.dumps(record))
+    unused = claims.depth_gates(_depth_records([0.8], [0.6], None, 0.7))["pretrained_network"]
+    assert unused["rgb_d1"] == 0.86 and unused["passed"] and not unused["used_by_tables"]
+    assert "git" not in unused
+    used = claims.depth_gates(_depth_records([0.8], [0.6], dict(record), 0.7))["pretrained_network"]
+    assert used["used_by_tables"]
+    records = {k: {**v, "synthetic": True, "seeds": [0], "preset": "small", "eval_data": {}}
+               for k, v in _depth_records([0.8], [0.6], None, 0.7).items()}
+    md = claims.claims_markdown(records, [])
+    assert "gate 1 passed, δ<1.25 0.860 on visible images, blank 0.310" in md
+    assert "these tables did not start from it" in md
 
 
 def _simulated_experiments(effect: float, sims: int, seeds: int = 3, frames: int = 200, seed: int = 0):
