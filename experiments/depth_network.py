@@ -180,6 +180,28 @@ def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
     }
 
 
+PILOT_ARMS = {"HSV (ours)": ("stage2.preprocessing=hsv",),
+              "camera-like": ("stage2.preprocessing=camera",),
+              "blank (control)": ("stage2.preprocessing=blank",)}
+"""The pilot's Stage II rows (table 1's), each started from the pretrained network."""
+
+
+def pilot(ctx: Context, seed: int = 0, recipe: Recipe = RECIPE) -> dict:
+    """The pilot of the depth tables: seed `seed` of `PILOT_ARMS`, each from the pretrained
+    network (trained first when not cached), on the seed's Stage I model as the tables have
+    it. Returns {row: {'d1', 'train_wall_s', 'eval_wall_s', 'run'}, 'margin_over_blank': {row:
+    δ<1.25 - the blank row's}} (gate 3 is margin >= `GATE_HSV_MARGIN`)."""
+    pretrained_depth(ctx, recipe)
+    rows = {}
+    for label, overrides in PILOT_ARMS.items():
+        record = ctx.result("stage2", overrides, seed)
+        rows[label] = {"d1": round(record["stage2"]["all"]["d1"], 4), "run": record["run"],
+                       "train_wall_s": record["train_wall_s"], "eval_wall_s": record["eval_wall_s"]}
+    blank = rows["blank (control)"]["d1"]
+    return {**rows, "margin_over_blank": {label: round(row["d1"] - blank, 4)
+                                          for label, row in rows.items() if label != "blank (control)"}}
+
+
 COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
                    "eval-*.npz")
 """What `commit_networks` copies of a run: its records (paths inside the cache made relative to
@@ -258,6 +280,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                     help=f"copy both runs into {os.path.relpath(COMMITTED_RUNS, REPO)}")
     ap.add_argument("--images", nargs="+", choices=("rgb", "blank"), default=["rgb", "blank"],
                     help="which networks to train (and commit); the gate needs both")
+    ap.add_argument("--pilot", action="store_true",
+                    help="then seed 0 of table 1's HSV, camera-like and blank rows from the "
+                         "pretrained network: their delta<1.25 and gate 3's margins")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     ctx = runner.context(args.preset, overrides=args.overrides, cache=args.cache,
@@ -271,6 +296,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         print(json.dumps(gate, indent=2))
     else:
         print("gate 1 needs both networks (--images rgb blank)")
+    if args.pilot:
+        print(json.dumps(pilot(ctx), indent=2))
     if args.commit:
         from irdepth_experiments.report import git_commit, hardware
 

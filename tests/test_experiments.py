@@ -425,6 +425,31 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
     assert "0.3000" in (committed["blank", 1] / "MADE_BY.md").read_text()
 
 
+def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s_margins(tmp_path):
+    """`depth_network.pilot`: HSV, camera-like and blank at seed 0, every Stage II from the last
+    phase of the pretrained network; margins over the blank row."""
+    from irdepth_experiments import depth_network
+
+    d1 = {"hsv": 0.62, "camera": 0.58, "blank": 0.50}
+    asked = []
+
+    def result(kind, overrides, seed):
+        asked.append((kind, overrides, seed))
+        if kind == "depth":
+            phase = 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1
+            return {"run": f"depth-{phase}", "stage2": {"all": {"d1": 0.9}}}
+        image = overrides[0].split("=")[1]
+        return {"run": f"stage2-{image}", "stage2": {"all": {"d1": d1[image]}}, "train_wall_s": 1.0,
+                "eval_wall_s": 2.0}
+
+    ctx = types.SimpleNamespace(cache=str(tmp_path), use_pretraining_set=lambda frames: {}, result=result)
+    out = depth_network.pilot(ctx)
+    assert ctx.stage2_depth_checkpoint == str(tmp_path / "runs" / "depth-2")
+    assert [a for a in asked if a[0] == "stage2"] == [("stage2", o, 0) for o in depth_network.PILOT_ARMS.values()]
+    assert out["HSV (ours)"]["d1"] == 0.62 and out["blank (control)"]["run"] == "stage2-blank"
+    assert out["margin_over_blank"] == {"HSV (ours)": pytest.approx(0.12), "camera-like": pytest.approx(0.08)}
+
+
 def test_layout_bound_worked_by_hand():
     """Training frames at 10 m on the left half and 40 m on the right: the best constant is ~10
     and ~40 m per pixel; an evaluation frame at those depths scores 1, one at twice them 0, and
