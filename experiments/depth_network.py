@@ -209,14 +209,20 @@ it); of the pretrained network's last phase also the last checkpoint's weights (
 item; not the optimizer state, twice their size)."""
 
 
+def cache_relative(text: str, cache: str) -> str:
+    """`text` with the paths inside the experiment cache `cache` made relative to it and the
+    cache itself named `<cache>` (a committed record names no machine's folders)."""
+    cache = cache.rstrip(os.sep)
+    return text.replace(cache + os.sep, "").replace(cache, "<cache>")
+
+
 def _copy_records(run: str, target: str, cache: str) -> None:
-    """Copies `run`'s `COMMITTED_FILES` into `target`, with paths inside `cache` written
-    relative to it (a committed record names no machine's folders)."""
+    """Copies `run`'s `COMMITTED_FILES` into `target`, text through `cache_relative`."""
     for pattern in COMMITTED_FILES:
         for path in glob.glob(os.path.join(run, pattern)):
             if path.endswith((".json", ".jsonl")):
                 with open(path) as f:
-                    text = f.read().replace(cache.rstrip(os.sep) + os.sep, "")
+                    text = cache_relative(f.read(), cache)
                 with open(os.path.join(target, os.path.basename(path)), "w") as f:
                     f.write(text)
             else:
@@ -242,20 +248,27 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
             if image == "rgb" and number == len(phases):
                 checkpoints = os.path.join(run, "checkpoints", "stage2")
                 last = max((d for d in os.listdir(checkpoints) if d.isdigit()), key=int)
-                shutil.copytree(os.path.join(checkpoints, last),
-                                os.path.join(target, "checkpoints", "stage2", last),
+                copied = os.path.join(target, "checkpoints", "stage2", last)
+                shutil.copytree(os.path.join(checkpoints, last), copied,
                                 ignore=lambda directory, names: ["train"] if directory.endswith(last) else [])
+                meta = os.path.join(copied, "meta", "metadata")  # the run's config and provenance
+                if os.path.exists(meta):
+                    with open(meta) as f:
+                        text = cache_relative(f.read(), ctx.cache)
+                    with open(meta, "w") as f:
+                        f.write(text)
             weights = ("its weights are in checkpoints/" if image == "rgb" and number == len(phases)
                        else "records only (weights not committed)")
+            made_by = (f"# Depth Anything V2 trained on rendered "
+                       f"{'visible' if image == 'rgb' else 'blank'} images: phase {number} of "
+                       f"{len(phases)}\n\nMade by `{command}` (`experiments/depth_network.py`): "
+                       f"{_made_by(info, recipe)}; {weights}.\n\ndelta<1.25 on the held-out "
+                       f"evaluation renders' visible images ({record['eval_data']}): "
+                       f"{record['stage2']['all']['d1']:.4f}.\nRecipe: "
+                       f"`{json.dumps(dataclasses.asdict(recipe))}`. Pretraining data: "
+                       f"`{info['made_by']}`.\n")
             with open(os.path.join(target, "MADE_BY.md"), "w") as f:
-                f.write(f"# Depth Anything V2 trained on rendered "
-                        f"{'visible' if image == 'rgb' else 'blank'} images: phase {number} of "
-                        f"{len(phases)}\n\nMade by `{command}` (`experiments/depth_network.py`): "
-                        f"{_made_by(info, recipe)}; {weights}.\n\ndelta<1.25 on the held-out "
-                        f"evaluation renders' visible images ({record['eval_data']}): "
-                        f"{record['stage2']['all']['d1']:.4f}.\nRecipe: "
-                        f"`{json.dumps(dataclasses.asdict(recipe))}`. Pretraining data: "
-                        f"`{info['made_by']}`.\n")
+                f.write(cache_relative(made_by, ctx.cache))
             written.append(target)
     return written
 
@@ -308,7 +321,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             record = {**gate, "command": command, "git": git_commit(), "hardware": hardware(),
                       "date": time.strftime("%Y-%m-%d")}
             with open(GATE_RECORD, "w") as f:
-                f.write(json.dumps(record, indent=2).replace(ctx.cache.rstrip(os.sep) + os.sep, "") + "\n")
+                f.write(cache_relative(json.dumps(record, indent=2), ctx.cache) + "\n")
             print(f"wrote {os.path.relpath(GATE_RECORD, REPO)}")
     return gate
 

@@ -419,6 +419,8 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
     assert os.listdir(rgb / "checkpoints" / "stage2") == ["10"]
     assert sorted(os.listdir(rgb / "checkpoints" / "stage2" / "10")) == ["meta", "model"]
     assert json.loads((rgb / "config.json").read_text())["depth"]["checkpoint"] == "runs/depth-rgb-1"
+    assert depth_network.cache_relative(f"--cache {cache} data {cache}/data/x", str(cache)) == \
+        "--cache <cache> data data/x"
     made_by = (rgb / "MADE_BY.md").read_text()
     assert "`CMD`" in made_by and "0.9000" in made_by and "blank: the same on a constant grey image with" in made_by
     assert "phase 2 of 2" in made_by and "then 8000 steps from it" in made_by
