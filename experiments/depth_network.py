@@ -282,8 +282,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
         prog="python experiments/depth_network.py",
         description="Pretrain Depth Anything V2 on rendered visible images (and the same on a "
                     "blank image), measure the pretraining gate, and optionally commit both "
-                    f"runs. Recipe: {RECIPE}. About an hour per network on 2 CPU cores; "
-                    "interrupted runs resume from their last checkpoint.")
+                    f"runs. Recipe: {RECIPE}. About 4 hours for the pretrained network and 1 for "
+                    "the blank one on 2 CPU cores; interrupted runs resume from their last "
+                    "checkpoint.")
     ap.add_argument("--preset", default="small", choices=("tiny", "small", "paper"))
     ap.add_argument("--cache", default=DEFAULT_CACHE, help="experiment cache (as the table scripts')")
     ap.add_argument("--set", dest="overrides", nargs="*", default=["data.scenes=varied"],

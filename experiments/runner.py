@@ -146,8 +146,9 @@ def parse_args(table: Table, argv: Sequence[str] | None = None) -> argparse.Name
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     ap.add_argument("--no-committed-runs", action="store_true",
                     help="train every run, also those committed with the repository "
-                         "(experiments/pretrained: the pretrained depth network, about an hour "
-                         "on 2 cores), instead of copying them into the cache")
+                         "(experiments/pretrained: the pretrained depth network and its blank "
+                         "control, about 5 hours on 2 cores), instead of copying them into the "
+                         "cache")
     args = ap.parse_args(argv)
     if args.quick:
         args.preset, args.seeds, args.eval_frames = "tiny", [0], QUICK_EVAL_FRAMES
