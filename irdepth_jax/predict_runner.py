@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -22,6 +23,11 @@ from irdepth_jax.predict_settings import DEFAULT_BATCH
 
 READ_AHEAD = 2
 """Batches decoded ahead of the model."""
+
+EXPORT_MIN_S = 5.0
+"""A pipeline whose first trace and compile took at least this long is exported into the program
+cache (`program_cache.keep_export`) for the next start; a quicker one is not (the export costs
+about what it saves there), as JAX's persistent cache skips quick compiles."""
 
 
 def default_batch_size() -> int:
@@ -66,13 +72,18 @@ class Predictor:
 
         from irdepth_jax.config import to_dict
         from irdepth_jax.models.pipeline import pipeline_outputs
-        from irdepth_jax.program_cache import cached_export
+        from irdepth_jax.program_cache import keep_export, kept_export
 
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
-        # the exported program of a warm start is not traced again (`program_cache`)
-        exported = cached_export("pipeline", to_dict(self.cfg),
-                                 jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)), args, kwargs)
-        compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
+        exported = kept_export("pipeline", to_dict(self.cfg), args, kwargs)
+        if exported is not None:  # a warm start: the program is not traced again
+            compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
+        else:
+            started = time.perf_counter()
+            compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
+            if time.perf_counter() - started >= EXPORT_MIN_S:
+                keep_export("pipeline", to_dict(self.cfg),
+                            jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)), args, kwargs)
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
             frames = f"a batch of {batch} frames" if batch > 1 else "one frame"

@@ -130,35 +130,47 @@ def cached_shapes(name: str, made_from: Any, make: Callable[[], Any]) -> Any:
     return tree
 
 
-def cached_export(name: str, made_from: Any, fn: Callable, args: tuple, kwargs: Mapping[str, Any]):
-    """`jax.export.export(fn)(*args, **kwargs)`, read from the cache when an entry of (`name`,
-    `made_from`, the arguments' tree, shapes and dtypes, the backend) is kept there, else
-    exported and kept. Call it as `exported.call(*args, **kwargs)` (jitted: JAX's persistent
-    cache then holds its compile).
+def _export_path(name: str, made_from: Any, args: tuple, kwargs: Mapping[str, Any]) -> str | None:
+    import jax
+
+    folder = directory()
+    if folder is None:
+        return None
+    leaves, tree = jax.tree.flatten((args, dict(kwargs)))
+    spec = [[list(x.shape), str(x.dtype)] for x in leaves]
+    key = entry_key(name, made_from, str(tree), spec, jax.default_backend())
+    return os.path.join(folder, f"{name}-{key}.jaxexport")
+
+
+def kept_export(name: str, made_from: Any, args: tuple, kwargs: Mapping[str, Any]):
+    """The `jax.export.Exported` kept by `keep_export` for (`name`, `made_from`, the
+    arguments' tree, shapes and dtypes, the backend), or None (none kept, unreadable, or the
+    cache off). Call it as `exported.call(*args, **kwargs)` (jitted: JAX's persistent cache
+    then holds its compile)."""
+    from jax import export
+
+    path = _export_path(name, made_from, args, kwargs)
+    data = None if path is None else _read(path)
+    if data is None:
+        return None
+    try:
+        return export.deserialize(bytearray(data))
+    except Exception:  # a damaged or foreign entry, whatever the error: as if none
+        return None
+
+
+def keep_export(name: str, made_from: Any, fn: Callable, args: tuple, kwargs: Mapping[str, Any]) -> None:
+    """Exports `fn` (`jax.export.export(fn)(*args, **kwargs)`) into the cache for
+    `kept_export`; nothing when the cache is off.
 
     Args:
       name: what the program is ('pipeline').
       made_from: what `fn` computes besides this source (a config as a dict).
       fn: a jitted function of arrays (its non-array settings bound).
       args, kwargs: example arguments (arrays, ShapeDtypeStructs or None).
-    Returns:
-      a `jax.export.Exported`.
     """
-    import jax
     from jax import export
 
-    leaves, tree = jax.tree.flatten((args, dict(kwargs)))
-    spec = [[list(x.shape), str(x.dtype)] for x in leaves]
-    folder = directory()
-    path = None if folder is None else os.path.join(
-        folder, f"{name}-{entry_key(name, made_from, str(tree), spec, jax.default_backend())}.jaxexport")
-    data = None if path is None else _read(path)
-    if data is not None:
-        try:
-            return export.deserialize(bytearray(data))
-        except Exception:  # a damaged or foreign entry, whatever the error: exported again
-            pass
-    exported = export.export(fn)(*args, **kwargs)
+    path = _export_path(name, made_from, args, kwargs)
     if path is not None:
-        _write(path, bytes(exported.serialize()))
-    return exported
+        _write(path, bytes(export.export(fn)(*args, **kwargs).serialize()))
