@@ -75,14 +75,15 @@ class Predictor:
         from irdepth_jax.program_cache import keep_export, kept_export
 
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
-        exported = kept_export("pipeline", to_dict(self.cfg), args, kwargs)
+        made_from = to_dict(self.cfg)
+        exported = kept_export("pipeline", made_from, args, kwargs)
         if exported is not None:  # a warm start: the program is not traced again
             compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
         else:
             started = time.perf_counter()
             compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
             if time.perf_counter() - started >= EXPORT_MIN_S:
-                keep_export("pipeline", to_dict(self.cfg),
+                keep_export("pipeline", made_from,
                             jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)), args, kwargs)
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
