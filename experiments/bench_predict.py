@@ -18,7 +18,11 @@ uint16 frames to depth:
    and the depth part (RGB -> depth) apart, with XLA's FLOP count of each;
 2. time to first depth: `irdepth predict` on one frame of the first size, a new process from
    start to exit (its PNGs checked written), with an empty compilation cache (cold) and then
-   with the cache that run filled (warm, the median of --ttfd-repeats).
+   with the cache that run filled (warm, the median of --ttfd-repeats; each start's seconds
+   in `warm_s_all`). --ttfd-only measures this alone:
+
+       python experiments/bench_predict.py --preset paper --sizes 256x320 --ttfd-only \
+           --json experiments/results/bench_predict_ttfd.json
 
 Threads: --threads N for every side (XLA's pool, torch's OpenMP, onnxruntime's intra-op).
 """
@@ -219,7 +223,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--threads", type=int, default=usable_cpus())
     parser.add_argument("--sides", nargs="+", choices=SIDES, default=list(SIDES),
                         help="ours and which opponents (ours always runs)")
-    parser.add_argument("--ttfd-repeats", type=int, default=2, help="warm `irdepth predict` runs (0: none)")
+    parser.add_argument("--ttfd-repeats", type=int, default=3,
+                        help="warm `irdepth predict` runs (0: none); the first of them is a process's second start")
+    parser.add_argument("--ttfd-only", action="store_true",
+                        help="only the time to first depth (of the first --sizes), no per-frame sides")
     parser.add_argument("--json", metavar="FILE")
     parser.add_argument("overrides", nargs="*", metavar="KEY=VALUE", help="config overrides of the preset")
     args = parser.parse_args(argv)
@@ -228,7 +235,7 @@ def main(argv=None) -> dict:
                "processes": "one per side (Worker)", "cpu": platform.processor() or platform.machine(),
                "cpu_count": os.cpu_count(), **versions(), "results": []}
     print("inference: " + " ".join(f"{k}={v}" for k, v in summary.items() if k != "results"), flush=True)
-    for size in args.sizes:
+    for size in [] if args.ttfd_only else args.sizes:
         row = bench_size(args.preset, size, args.repeats, args.warmup, args.threads, sides, args.overrides)
         summary["results"].append(row)
         write_json(args.json, summary)

@@ -25,9 +25,9 @@ READ_AHEAD = 2
 """Batches decoded ahead of the model."""
 
 EXPORT_MIN_S = 5.0
-"""A pipeline whose first trace and compile took at least this long is exported into the program
-cache (`program_cache.keep_export`) for the next start; a quicker one is not (the export costs
-about what it saves there), as JAX's persistent cache skips quick compiles."""
+"""A pipeline whose first trace and compile took at least this long is kept in the program
+cache (`program_cache.keep_export`) for the next start; a quicker one is not (writing and
+reading it costs about what it saves there), as JAX's persistent cache skips quick compiles."""
 
 
 def default_batch_size() -> int:
@@ -69,22 +69,28 @@ class Predictor:
             self._compiled[(batch, *shape)] = functools.partial(run_pipeline, cfg=self.cfg)
             return
         import jax
+        from jax import export
 
         from irdepth_jax.config import to_dict
         from irdepth_jax.models.pipeline import pipeline_outputs
-        from irdepth_jax.program_cache import keep_export, kept_export
+        from irdepth_jax.program_cache import directory, keep_export, kept_export
 
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
         made_from = to_dict(self.cfg)
         exported = kept_export("pipeline", made_from, args, kwargs)
         if exported is not None:  # a warm start: the program is not traced again
             compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
-        else:
-            started = time.perf_counter()
+        elif directory() is None:  # no caches: nothing to keep for a next start
             compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
+        else:
+            # traced into an exported program and that program compiled (once): its compile in
+            # JAX's persistent cache is then the one the next start's `kept_export` asks for
+            started = time.perf_counter()
+            exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
+                *args, **kwargs)
+            compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
             if time.perf_counter() - started >= EXPORT_MIN_S:
-                keep_export("pipeline", made_from,
-                            jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)), args, kwargs)
+                keep_export("pipeline", made_from, exported, args, kwargs)
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
             frames = f"a batch of {batch} frames" if batch > 1 else "one frame"

@@ -159,18 +159,16 @@ def kept_export(name: str, made_from: Any, args: tuple, kwargs: Mapping[str, Any
         return None
 
 
-def keep_export(name: str, made_from: Any, fn: Callable, args: tuple, kwargs: Mapping[str, Any]) -> None:
-    """Exports `fn` (`jax.export.export(fn)(*args, **kwargs)`) into the cache for
-    `kept_export`; nothing when the cache is off.
+def keep_export(name: str, made_from: Any, exported, args: tuple, kwargs: Mapping[str, Any]) -> None:
+    """Writes `exported` (a `jax.export.Exported`, e.g. `jax.export.export(fn)(*args,
+    **kwargs)`) into the cache for `kept_export`; nothing when the cache is off.
 
     Args:
       name: what the program is ('pipeline').
-      made_from: what `fn` computes besides this source (a config as a dict).
-      fn: a jitted function of arrays (its non-array settings bound).
-      args, kwargs: example arguments (arrays, ShapeDtypeStructs or None).
+      made_from: what it computes besides this source (a config as a dict).
+      exported: the program.
+      args, kwargs: the arguments it was exported for (arrays, ShapeDtypeStructs or None).
     """
-    from jax import export
-
     path = _export_path(name, made_from, args, kwargs)
     if path is not None:
-        _write(path, bytes(export.export(fn)(*args, **kwargs).serialize()))
+        _write(path, bytes(exported.serialize()))

@@ -55,7 +55,7 @@ def test_exported_program_is_read_and_computes_what_the_traced_one_does(cache_di
 
     x, scale = jnp.arange(6.0).reshape(2, 3), jnp.float32(3.0)
     assert program_cache.kept_export("fn", {"k": 1}, (x,), {"scale": scale}) is None
-    program_cache.keep_export("fn", {"k": 1}, fn, (x,), {"scale": scale})
+    program_cache.keep_export("fn", {"k": 1}, jax.export.export(fn)(x, scale=scale), (x,), {"scale": scale})
     kept = program_cache.kept_export("fn", {"k": 1}, (x,), {"scale": scale})
     out = jax.jit(kept.call)(x, scale=scale)
     np.testing.assert_array_equal(np.asarray(out["y"]), np.asarray(fn(x, scale=scale)["y"]))
@@ -82,20 +82,31 @@ def test_off_without_the_compilation_cache(tmp_path):
 
 
 def test_predictor_from_the_program_cache_matches_run_pipeline(cache_dir, monkeypatch):
-    """`irdepth predict`'s model side: a second Predictor (a warm start) traces no pipeline and
-    its depth equals `run_pipeline`'s."""
+    """`irdepth predict`'s model side: a second Predictor (a warm start) traces no pipeline, its
+    compile is read from JAX's persistent cache (the first start compiled the exported program
+    itself), and its depth equals `run_pipeline`'s."""
     from irdepth_jax import predict_runner
     from irdepth_jax.models import pipeline
 
+    enable_compilation_cache(str(cache_dir.parent / "xla"), min_compile_time_s=0.0)  # every compile kept
     monkeypatch.setattr(predict_runner, "EXPORT_MIN_S", 0.0)  # tiny models compile quicker than it
     model = {"unet": None, "depth": random_depth(CFG)}
     raw = np.random.default_rng(0).integers(0, 2**14, (1, 32, 48)).astype(np.uint16)
     predict_runner.Predictor(CFG, model, 14).dispatch(raw)
-    traces = []
+    traces, events = [], []
     original = pipeline.pipeline_outputs
     monkeypatch.setattr(pipeline, "pipeline_outputs", lambda *a, **k: traces.append(1) or original(*a, **k))
-    depth = np.asarray(predict_runner.Predictor(CFG, model, 14).dispatch(raw)["depth"])
+
+    def listen(event, **_):
+        events.append(event)
+    jax.monitoring.register_event_listener(listen)
+    try:
+        depth = np.asarray(predict_runner.Predictor(CFG, model, 14).dispatch(raw)["depth"])
+    finally:
+        jax.monitoring.unregister_event_listener(listen)
     assert traces == []
+    assert "/jax/compilation_cache/cache_hits" in events
+    assert "/jax/compilation_cache/cache_misses" not in events
     monkeypatch.undo()
     from irdepth_jax.data.source import host_image
 
