@@ -50,6 +50,38 @@ def test_stage2_uses_the_stage1_normalisation(synthetic_data, tmp_path, capsys):
     assert np.abs(hsv_of(stage1, raw, raw_scale="percentile")[..., 1:] - expected).mean() > 0.01
 
 
+def test_untrained_segmentation_branch_is_refused_or_switched_off(synthetic_data, tmp_path, capsys):
+    """Stage II refuses the Hue and sky of a segmentation branch no labelled frame trained
+    (stage1.seg_labels=none: the same branch as on data without labels) and trains with them
+    switched off, saying so. Stage I-1 alone and Stage II with a constant hue: the programs of
+    test_stage2_uses_the_stage1_normalisation above, taken from the compilation cache."""
+    s1 = tmp_path / "s1"
+    assert cli.main(["train", "stage1", "--data", str(synthetic_data), "--workdir", str(s1), *QUICK,
+                     "stage1.steps_i1=1", "stage1.steps_i2=0", "stage1.seg_labels=none",
+                     "unet.raw_scale=fixed"]) == 0
+    assert "segmentation_labels" in capsys.readouterr().err
+    code = cli.main(["train", "stage2", "--data", str(synthetic_data), "--workdir",
+                     str(tmp_path / "s2"), "--stage1-checkpoint", str(s1), "--steps", "1",
+                     *QUICK])
+    err = capsys.readouterr().err
+    assert code == 2 and "never trained" in err
+    assert "stage2.hue_mode=constant" in err and "stage2.sky_loss=false" in err
+    s2 = tmp_path / "s2ok"
+    assert cli.main(["train", "stage2", "--data", str(synthetic_data), "--workdir", str(s2),
+                     "--stage1-checkpoint", str(s1), "--steps", "1", *QUICK,
+                     "stage2.hue_mode=constant", "stage2.sky_loss=false"]) == 0
+    err = capsys.readouterr().err
+    assert "segmentation_branch" in err and "'labeled_frames': 0" in err
+    with open(s2 / "metrics.jsonl") as f:
+        info = {k: v for ln in f if '"info"' in ln for k, v in json.loads(ln).items()}
+    assert info["segmentation_branch"]["labeled_frames"] == 0 and info["sky_loss"] == "off"
+    # ... and its evaluation says so too
+    assert cli.main(["eval", "--workdir", str(s2), "--data", str(synthetic_data)]) == 0
+    assert "segmentation branch of this model was never trained" in capsys.readouterr().out
+    with open(s2 / "eval_test.json") as f:
+        assert json.load(f)["segmentation_branch"]["labeled_frames"] == 0
+
+
 @pytest.mark.parametrize("override, stored", [("unet.raw_scale=fixed", "percentile"),
                                               ("unet.use_rgg=false", "true"),
                                               ("unet.widths=(4, 4, 4, 8)", "(4, 4, 4, 4)"),

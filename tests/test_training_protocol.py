@@ -112,35 +112,6 @@ def test_synthetic_labels_are_mixed_with_the_unlabelled_frames(unlabelled):
     assert all((s["seg"] != 255).any() for s in samples if s["labeled"])
 
 
-def test_untrained_segmentation_branch_is_refused_or_switched_off(unlabelled, tmp_path, capsys):
-    s1 = tmp_path / "s1"
-    # unet.raw_scale=fixed: the models of test_stage1_settings, whose compiled steps (I-1, Stage
-    # II with a constant hue) this test then takes from the session's compilation cache
-    assert cli.main(["train", "stage1", "--data", str(unlabelled), "--workdir", str(s1),
-                     "--steps", "1", *QUICK, "stage1.seg_labels=none", "unet.raw_scale=fixed"]) == 0
-    assert "segmentation_labels" in capsys.readouterr().err
-    code = cli.main(["train", "stage2", "--data", str(unlabelled), "--workdir",
-                     str(tmp_path / "s2"), "--stage1-checkpoint", str(s1), "--steps", "1",
-                     *QUICK])
-    err = capsys.readouterr().err
-    assert code == 2 and "never trained" in err
-    assert "stage2.hue_mode=constant" in err and "stage2.sky_loss=false" in err
-    s2 = tmp_path / "s2ok"
-    assert cli.main(["train", "stage2", "--data", str(unlabelled), "--workdir", str(s2),
-                     "--stage1-checkpoint", str(s1), "--steps", "1", *QUICK,
-                     "stage2.hue_mode=constant", "stage2.sky_loss=false"]) == 0
-    err = capsys.readouterr().err
-    assert "segmentation_branch" in err and "'labeled_frames': 0" in err
-    with open(s2 / "metrics.jsonl") as f:
-        info = {k: v for ln in f if '"info"' in ln for k, v in json.loads(ln).items()}
-    assert info["segmentation_branch"]["labeled_frames"] == 0 and info["sky_loss"] == "off"
-    # ... and its evaluation says so too
-    assert cli.main(["eval", "--workdir", str(s2), "--data", str(unlabelled)]) == 0
-    assert "segmentation branch of this model was never trained" in capsys.readouterr().out
-    with open(s2 / "eval_test.json") as f:
-        assert json.load(f)["segmentation_branch"]["labeled_frames"] == 0
-
-
 # --------------------------------------------------------------------------- defect 3
 def test_sky_reference_depth_is_capped_at_the_valid_range():
     cfg = CFG  # data.max_depth 80, metric head max_depth 80
