@@ -41,6 +41,7 @@ GATE_HSV_MARGIN = 0.10
 GATE_BLANK_HEALTHY = 0.8
 LAYOUT_TRAIN_FRAMES = 400  # training frames the layout bound is fitted on (every k-th)
 GATE_RECORD = os.path.join(REPO, "experiments", "results", "depth_network.json")
+PILOT_RECORD = os.path.join(REPO, "experiments", "results", "depth_pilot.json")
 """Gate 1 as measured by ``--commit`` on the committed networks (`claims.json` shows it)."""
 
 
@@ -180,7 +181,8 @@ def pretraining_gate(ctx: Context, recipe: Recipe = RECIPE) -> dict:
     }
 
 
-PILOT_ARMS = {"HSV (ours)": ("stage2.preprocessing=hsv",),
+HSV_ROW = "HSV (ours)"
+PILOT_ARMS = {HSV_ROW: ("stage2.preprocessing=hsv",),
               "camera-like": ("stage2.preprocessing=camera",),
               "blank (control)": ("stage2.preprocessing=blank",)}
 """The pilot's Stage II rows (table 1's), each started from the pretrained network."""
@@ -189,17 +191,23 @@ PILOT_ARMS = {"HSV (ours)": ("stage2.preprocessing=hsv",),
 def pilot(ctx: Context, seed: int = 0, recipe: Recipe = RECIPE) -> dict:
     """The pilot of the depth tables: seed `seed` of `PILOT_ARMS`, each from the pretrained
     network (trained first when not cached), on the seed's Stage I model as the tables have
-    it. Returns {row: {'d1', 'train_wall_s', 'eval_wall_s', 'run'}, 'margin_over_blank': {row:
-    δ<1.25 - the blank row's}} (gate 3 is margin >= `GATE_HSV_MARGIN`)."""
+    it. Returns {row: {'d1', 'train_wall_s', 'eval_wall_s', 'run'}, 'stage1': that Stage I
+    model's {'miou', 'run', 'train_wall_s'}, 'margin_over_blank': {row: δ<1.25 - the blank
+    row's}, 'gates': {'stage1': mIoU >= `GATE_STAGE1_MIOU`, 'hsv_over_blank': the HSV row's
+    margin >= `GATE_HSV_MARGIN`}}."""
     pretrained_depth(ctx, recipe)
     rows = {}
     for label, overrides in PILOT_ARMS.items():
         record = ctx.result("stage2", overrides, seed)
         rows[label] = {"d1": round(record["stage2"]["all"]["d1"], 4), "run": record["run"],
                        "train_wall_s": record["train_wall_s"], "eval_wall_s": record["eval_wall_s"]}
+    stage1 = ctx.result("stage1", (), seed)  # the model the rows above read (cached)
+    miou = round(stage1["stage1"]["all"]["miou"], 4)
     blank = rows["blank (control)"]["d1"]
-    return {**rows, "margin_over_blank": {label: round(row["d1"] - blank, 4)
-                                          for label, row in rows.items() if label != "blank (control)"}}
+    margins = {label: round(row["d1"] - blank, 4) for label, row in rows.items() if label != "blank (control)"}
+    return {**rows, "stage1": {"miou": miou, "run": stage1["run"], "train_wall_s": stage1["train_wall_s"]},
+            "margin_over_blank": margins,
+            "gates": {"stage1": miou >= GATE_STAGE1_MIOU, "hsv_over_blank": margins[HSV_ROW] >= GATE_HSV_MARGIN}}
 
 
 COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
@@ -296,7 +304,9 @@ def main(argv: Sequence[str] | None = None) -> dict:
                     help="which networks to train (and commit); the gate needs both")
     ap.add_argument("--pilot", action="store_true",
                     help="then seed 0 of table 1's HSV, camera-like and blank rows from the "
-                         "pretrained network: their delta<1.25 and gate 3's margins")
+                         "pretrained network: their delta<1.25, gate 2 (the Stage I model's mIoU) "
+                         "and gate 3 (the margins over blank); with --commit written to "
+                         f"{os.path.relpath(PILOT_RECORD, REPO)}")
     ap.add_argument("--no-progress", action="store_true")
     args = ap.parse_args(argv)
     ctx = runner.context(args.preset, overrides=args.overrides, cache=args.cache,
@@ -310,20 +320,21 @@ def main(argv: Sequence[str] | None = None) -> dict:
         print(json.dumps(gate, indent=2))
     else:
         print("gate 1 needs both networks (--images rgb blank)")
-    if args.pilot:
-        print(json.dumps(pilot(ctx), indent=2))
+    piloted = pilot(ctx) if args.pilot else None
+    if piloted is not None:
+        print(json.dumps(piloted, indent=2))
     if args.commit:
         from irdepth_experiments.report import git_commit, hardware
 
         command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
+        made = {"command": command, "git": git_commit(), "hardware": hardware(), "date": time.strftime("%Y-%m-%d")}
         for path in commit_networks(ctx, command=command, images=args.images):
             print(f"wrote {os.path.relpath(path, REPO)}")
-        if gate is not None:
-            record = {**gate, "command": command, "git": git_commit(), "hardware": hardware(),
-                      "date": time.strftime("%Y-%m-%d")}
-            with open(GATE_RECORD, "w") as f:
-                f.write(cache_relative(json.dumps(record, indent=2), ctx.cache) + "\n")
-            print(f"wrote {os.path.relpath(GATE_RECORD, REPO)}")
+        for record, path in ((gate, GATE_RECORD), (piloted, PILOT_RECORD)):
+            if record is not None:
+                with open(path, "w") as f:
+                    f.write(cache_relative(json.dumps({**record, **made}, indent=2), ctx.cache) + "\n")
+                print(f"wrote {os.path.relpath(path, REPO)}")
     return gate
 
 

@@ -429,7 +429,7 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
 
 def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s_margins(tmp_path):
     """`depth_network.pilot`: HSV, camera-like and blank at seed 0, every Stage II from the last
-    phase of the pretrained network; margins over the blank row."""
+    phase of the pretrained network; margins over the blank row, gates 2 and 3."""
     from irdepth_experiments import depth_network
 
     d1 = {"hsv": 0.62, "camera": 0.58, "blank": 0.50}
@@ -440,6 +440,8 @@ def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s
         if kind == "depth":
             phase = 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1
             return {"run": f"depth-{phase}", "stage2": {"all": {"d1": 0.9}}}
+        if kind == "stage1":
+            return {"run": "stage1-0", "stage1": {"all": {"miou": 0.64}}, "train_wall_s": 3.0}
         image = overrides[0].split("=")[1]
         return {"run": f"stage2-{image}", "stage2": {"all": {"d1": d1[image]}}, "train_wall_s": 1.0,
                 "eval_wall_s": 2.0}
@@ -450,6 +452,8 @@ def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s
     assert [a for a in asked if a[0] == "stage2"] == [("stage2", o, 0) for o in depth_network.PILOT_ARMS.values()]
     assert out["HSV (ours)"]["d1"] == 0.62 and out["blank (control)"]["run"] == "stage2-blank"
     assert out["margin_over_blank"] == {"HSV (ours)": pytest.approx(0.12), "camera-like": pytest.approx(0.08)}
+    assert ("stage1", (), 0) in asked and out["stage1"] == {"miou": 0.64, "run": "stage1-0", "train_wall_s": 3.0}
+    assert out["gates"] == {"stage1": True, "hsv_over_blank": True}  # 0.64 >= 0.6, 0.12 >= 0.10
 
 
 def test_layout_bound_worked_by_hand():
