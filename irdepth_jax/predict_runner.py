@@ -80,17 +80,16 @@ class Predictor:
         exported = kept_export("pipeline", made_from, args, kwargs)
         if exported is not None:  # a warm start: the program is not traced again
             compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
-        elif directory() is None:  # no caches: nothing to keep for a next start
-            compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
         else:
-            # traced into an exported program and that program compiled (once): its compile in
-            # JAX's persistent cache is then the one the next start's `kept_export` asks for
             started = time.perf_counter()
-            exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
-                *args, **kwargs)
-            compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
-            if time.perf_counter() - started >= EXPORT_MIN_S:
+            compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
+            if directory() is not None and time.perf_counter() - started >= EXPORT_MIN_S:
+                exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
+                    *args, **kwargs)
                 keep_export("pipeline", made_from, exported, args, kwargs)
+                # the exported program compiled now too, so that JAX's persistent cache holds
+                # the compile the next start's `kept_export` asks for
+                compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
             frames = f"a batch of {batch} frames" if batch > 1 else "one frame"
