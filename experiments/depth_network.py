@@ -55,10 +55,11 @@ class Recipe:
       steps: optimizer steps (batch `stage2.batch_size` of the preset).
       learning_rate: backbone rate (the head's is `stage2.head_lr_multiplier` x it), poly decay.
       seed: training seed (one pretrained network for every Stage II seed, as one release).
-      restart_steps, restart_learning_rate: a second phase (0 steps: none) fine-tuning the
-        first phase's network (`depth.checkpoint`) with a fresh optimizer and poly decay from
-        `restart_learning_rate`: a warm restart. The first 10,000 steps reached δ<1.25 0.825
-        on the held-out renders, still rising; the restart continues them without retraining.
+      restarts: the later phases, each (steps, learning rate): it fine-tunes the previous
+        phase's network (`depth.checkpoint`) with a fresh optimizer and poly decay from its
+        rate, a warm restart. The first 10,000 steps reached δ<1.25 0.825 on the held-out
+        renders, still rising, and the first restart 0.847; each restart continues the
+        network without retraining the phases before it.
       blank_overrides: what the blank network's recipe changes. Its head learns at the
         backbone's rate: at the usual 10x, the ReLU units of its head died within 50 steps in
         the pilot (a constant image gives every pixel the same features; gradient norm 0,
@@ -70,8 +71,7 @@ class Recipe:
     learning_rate: float = 1e-4
     seed: int = 0
     blank_overrides: tuple[str, ...] = ("stage2.head_lr_multiplier=1",)
-    restart_steps: int = 8000
-    restart_learning_rate: float = 5e-5
+    restarts: tuple[tuple[int, float], ...] = ((8000, 5e-5), (8000, 5e-5))
 
     def overrides(self, image: str) -> tuple[str, ...]:
         """The first phase's `train depth` overrides for the network trained on `image` ('rgb'
@@ -80,16 +80,17 @@ class Recipe:
                 f"stage2.learning_rate={self.learning_rate:g}",
                 *(self.blank_overrides if image == "blank" else ()))
 
-    def restart_overrides(self, image: str, first_phase: str) -> tuple[str, ...]:
-        """The second phase's overrides: it fine-tunes the run directory `first_phase`."""
-        return (f"stage2.preprocessing={image}", f"stage2.steps={self.restart_steps}",
-                f"stage2.learning_rate={self.restart_learning_rate:g}",
-                f"depth.checkpoint={first_phase}",
+    def restart_overrides(self, image: str, restart: int, previous_phase: str) -> tuple[str, ...]:
+        """The overrides of restart number `restart` (0: the second phase): it fine-tunes the
+        run directory `previous_phase`."""
+        steps, learning_rate = self.restarts[restart]
+        return (f"stage2.preprocessing={image}", f"stage2.steps={steps}",
+                f"stage2.learning_rate={learning_rate:g}", f"depth.checkpoint={previous_phase}",
                 *(self.blank_overrides if image == "blank" else ()))
 
 
 RECIPE = Recipe()
-QUICK_RECIPE = Recipe(frames=24, steps=2, restart_steps=1)
+QUICK_RECIPE = Recipe(frames=24, steps=2, restarts=((1, 5e-5),))
 """--quick's: a smoke test of the mechanics, not a pretrained network."""
 
 
@@ -130,9 +131,9 @@ def network_phases(ctx: Context, image: str, recipe: Recipe = RECIPE) -> list[di
     the network)."""
     ctx.use_pretraining_set(recipe.frames)
     records = [ctx.result("depth", recipe.overrides(image), recipe.seed)]
-    if recipe.restart_steps:
-        first = os.path.join(ctx.cache, "runs", records[0]["run"])
-        records.append(ctx.result("depth", recipe.restart_overrides(image, first), recipe.seed))
+    for restart in range(len(recipe.restarts)):
+        previous = os.path.join(ctx.cache, "runs", records[-1]["run"])
+        records.append(ctx.result("depth", recipe.restart_overrides(image, restart, previous), recipe.seed))
     return records
 
 
@@ -149,8 +150,8 @@ def _made_by(info: dict, recipe: Recipe) -> str:
     return (f"irdepth train depth on {recipe.frames} rendered visible frames "
             f"({info['height']}x{info['width']}, scenes {info['scenes']}, dataset seed "
             f"{info['seed']}), {recipe.steps} steps, backbone rate {recipe.learning_rate:g}"
-            + (f", then {recipe.restart_steps} steps from it at {recipe.restart_learning_rate:g} "
-               "(fresh optimizer, poly decay)" if recipe.restart_steps else "")
+            + "".join(f", then {steps} steps from it at {rate:g} (fresh optimizer, poly decay)"
+                      for steps, rate in recipe.restarts)
             + f", seed {recipe.seed}; blank: the same on a constant grey image"
             + (f" with {', '.join(recipe.blank_overrides)}" if recipe.blank_overrides else ""))
 
