@@ -37,10 +37,12 @@ EVAL_FRAMES = 1500
 `small` size, a few seconds per run to evaluate; per-frame noise of a mean over them is small
 next to the seed-to-seed spread."""
 
-QUICK_OVERRIDES = ("stage1.steps_i1=2", "stage1.steps_i2=2", "stage2.steps=2")
+QUICK_OVERRIDES = ("data.height=32", "data.width=48", "stage1.steps_i1=2", "stage1.steps_i2=2",
+                   "stage2.steps=2")
 QUICK_EVAL_FRAMES = 24
-"""--quick: tiny preset, one seed, two optimizer steps per phase, 24 evaluation frames (a smoke
-test, not a result)."""
+"""--quick: tiny preset at 32x48 frames, one seed, two optimizer steps per phase, 24 evaluation
+frames (a smoke test, not a result; the test suite's frame size, so that its compiled steps
+are the suite's other runs')."""
 
 DEPTH_COLUMNS = ("d1", "d2", "d3", "abs_rel", "sq_rel", "rmse")
 SKY_COLUMNS = ("sky_far", "skyline_abs_rel")
@@ -134,7 +136,7 @@ def parse_args(table: Table, argv: Sequence[str] | None = None) -> argparse.Name
                     help="where datasets, runs and the XLA compilation cache go "
                          "(default: workdir/experiments)")
     ap.add_argument("--quick", action="store_true",
-                    help=f"smoke test: tiny preset, seed 0, 2 steps per phase, "
+                    help=f"smoke test: tiny preset (32x48 rendered frames), seed 0, 2 steps per phase, "
                          f"{QUICK_EVAL_FRAMES} evaluation frames (overrides --preset/--seeds/"
                          f"--eval-frames; not a result)")
     ap.add_argument("--depth-init", default="random", choices=("random", "pretrained"),

@@ -48,9 +48,9 @@ def read_metrics(workdir):
             if r.get("kind") != "info"]
 
 
-def final_params(workdir, phase="stage1_i2", overrides=()):
+def final_params(workdir, phase="stage1_i2", overrides=tuple(trained_runs.MODEL)):
     """(model variables, meta) of the last checkpoint of `phase` in a run of the tiny preset
-    with `overrides`."""
+    with `overrides` (default: the CLI tests' model, `trained_runs.MODEL`)."""
     model, meta = restore_model(os.path.join(workdir, "checkpoints", phase), phase,
                                 init_unet(apply_overrides(get_config("tiny"), list(overrides))))
     return model, meta

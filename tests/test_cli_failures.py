@@ -20,9 +20,10 @@ import numpy as np
 import optax
 import pytest
 from test_cli import QUICK, one_line_error, read_metrics, run
+from trained_runs import MODEL
 
 from irdepth_jax import cli
-from irdepth_jax.config import get_config
+from irdepth_jax.config import apply_overrides, get_config
 from irdepth_jax.fileio import mount_point
 from irdepth_jax.models import pipeline
 from irdepth_jax.runs import variables
@@ -32,7 +33,7 @@ from irdepth_jax.train import runlog
 from irdepth_jax.train.state import TrainState
 from irdepth_jax.train.workdir_lock import LOCK_NAME
 
-TINY = get_config("tiny")
+TINY = apply_overrides(get_config("tiny"), MODEL)  # the model of the runs of QUICK
 SAVE_EVERY_STEP = [*QUICK, "checkpoint_every=1"]
 
 

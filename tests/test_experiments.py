@@ -408,7 +408,8 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
         return records[image, 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1]
 
     ctx = types.SimpleNamespace(cache=str(cache), use_pretraining_set=lambda frames: info, result=result)
-    written = depth_network.commit_networks(ctx, into=str(tmp_path / "committed"), command="CMD")
+    recipe = depth_network.Recipe(restarts=((8000, 5e-5),))  # two phases
+    written = depth_network.commit_networks(ctx, recipe, into=str(tmp_path / "committed"), command="CMD")
     committed = {(image, phase): tmp_path / "committed" / f"depth-{image}-{phase}"
                  for image in ("rgb", "blank") for phase in (1, 2)}
     assert written == [str(committed[key]) for key in (("rgb", 1), ("rgb", 2), ("blank", 1), ("blank", 2))]
@@ -547,17 +548,14 @@ def test_the_tables_on_a_users_ms2_dataset(quick_cache, tmp_path):
 
 def test_the_tables_on_a_users_folder_dataset(quick_results, quick_cache, tmp_path):
     """--data FOLDER: trained on its train split, evaluated on its own test split. The folder's
-    frames are of the quick tables' size, so that its runs (new ones: other data) take the train
-    steps those tables compiled."""
+    frames are of the quick tables' size (the suite's), so that its runs (new ones: other data)
+    take the train steps those tables compiled."""
     from trained_runs import DATA
 
-    from irdepth_jax.config import get_config
     from irdepth_jax.data.synthetic_dataset import write_synthetic_dataset
 
     quick_results["table2_multitask_reconstruction"]  # the compiled steps of its quick runs
-    size = get_config("tiny").data
-    folder = write_synthetic_dataset(tmp_path / "folder", **{
-        **DATA, "seed": 5, "height": size.height, "width": size.width}, progress=False)
+    folder = write_synthetic_dataset(tmp_path / "folder", **{**DATA, "seed": 5}, progress=False)
     script = load_script("table2_multitask_reconstruction")
     record = script.main(script.TABLE, ["--quick", "--data", str(folder), "--cache",
                                         quick_cache, "--out", str(tmp_path / "out"), "--no-progress"])

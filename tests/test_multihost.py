@@ -118,16 +118,13 @@ def test_cli_train_on_two_processes_equals_one_process_with_two_devices(syntheti
     and weights as one process with `--devices 2`. The three processes run at once, and stop
     (`--stop-at`) after I-1, whose checkpoint is compared: I-2 runs the same parallel code."""
     from test_cli import final_params, read_metrics
-    from trained_runs import QUICK
+    from trained_runs import MODEL, QUICK
 
     from irdepth_jax.cli import EXIT_INTERRUPTED
 
-    quick = [a for a in QUICK if a not in ("--devices", "1")]
-    # a two-stage UNet: each process compiles its steps cold (they run at once), and the
-    # tiny preset's four stages add compile time, not parallel code
-    model = ["unet.widths=(4, 4)"]
-    common = ["train", "stage1", "--data", synthetic_data, "--steps", 2, "--stop-at", 2, *quick,
-              *model]
+    quick = [a for a in QUICK if a not in ("--devices", "1")]  # QUICK's two-level UNet
+    model = MODEL
+    common = ["train", "stage1", "--data", synthetic_data, "--steps", 2, "--stop-at", 2, *quick]
     one, two = tmp_path / "one_process", tmp_path / "two_processes"
     port = free_port()
     logs = _cli_processes(

@@ -84,7 +84,7 @@ def test_untrained_segmentation_branch_is_refused_or_switched_off(synthetic_data
 
 @pytest.mark.parametrize("override, stored", [("unet.raw_scale=fixed", "percentile"),
                                               ("unet.use_rgg=false", "true"),
-                                              ("unet.widths=(4, 4, 4, 8)", "(4, 4, 4, 4)"),
+                                              ("unet.widths=(4, 8)", "(4, 4)"),
                                               ("data.raw_bits=16", "14-bit")])
 def test_stage2_refuses_another_stage1_setting(stage1_run, synthetic_data, tmp_path, capsys,
                                                override, stored):

@@ -110,22 +110,20 @@ def make_train_step(loss_fn: LossFn, axis_name: str | None = None, accum_steps: 
             micro = split_micro_batches(batch, accum_steps)
 
             def body(carry, xs):
-                grad_sum, stats, metric_sum = carry
+                grad_sum, stats = carry
                 mb, i = xs
                 grads, stats, metrics = grads_of(state.params, stats, frozen, mb,
                                                  jax.random.fold_in(rng, i))
-                add = lambda a, b: jax.tree.map(jnp.add, a, b)  # noqa: E731
-                return (add(grad_sum, grads), stats, add(metric_sum, metrics)), None
+                return (jax.tree.map(jnp.add, grad_sum, grads), stats), metrics
 
-            grads0, stats0, metrics0 = jax.eval_shape(
-                grads_of, state.params, state.batch_stats, frozen,
-                jax.tree.map(lambda x: x[0], micro), rng)
-            init = (_like_varying(_zeros(grads0), axis_name), state.batch_stats,
-                    _like_varying(_zeros(metrics0), axis_name))
-            (grad_sum, new_stats, metric_sum), _ = lax.scan(
+            # the metrics are the scan's outputs, not its carry: the carry's shapes are then
+            # known without tracing the loss a second time (gradients have the parameters')
+            init = (_like_varying(jax.tree.map(jnp.zeros_like, state.params), axis_name),
+                    state.batch_stats)
+            (grad_sum, new_stats), micro_metrics = lax.scan(
                 body, init, (micro, jnp.arange(accum_steps)))
             grads = jax.tree.map(lambda g: g / accum_steps, grad_sum)
-            metrics = jax.tree.map(lambda m: m / accum_steps, metric_sum)
+            metrics = jax.tree.map(lambda m: jnp.sum(m, axis=0) / accum_steps, micro_metrics)
         grads = pmean_if(grads, axis_name)
         metrics = pmean_if(metrics, axis_name)
         new_state = state.apply_gradients(grads, new_stats)
@@ -135,10 +133,6 @@ def make_train_step(loss_fn: LossFn, axis_name: str | None = None, accum_steps: 
         return new_state, metrics
 
     return train_step
-
-
-def _zeros(shapes: Any) -> Any:
-    return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
 
 
 def _like_varying(tree: Any, axis_name: str | None) -> Any:
