@@ -408,7 +408,7 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
         return records[image, 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1]
 
     ctx = types.SimpleNamespace(cache=str(cache), use_pretraining_set=lambda frames: info, result=result)
-    recipe = depth_network.Recipe(restarts=((8000, 5e-5),))  # two phases
+    recipe = depth_network.Recipe(restarts=((8000, 5e-5, 6000),))  # two phases
     written = depth_network.commit_networks(ctx, recipe, into=str(tmp_path / "committed"), command="CMD")
     committed = {(image, phase): tmp_path / "committed" / f"depth-{image}-{phase}"
                  for image in ("rgb", "blank") for phase in (1, 2)}
@@ -455,6 +455,28 @@ def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s
     assert out["margin_over_blank"] == {"HSV (ours)": pytest.approx(0.12), "camera-like": pytest.approx(0.08)}
     assert ("stage1", (), 0) in asked and out["stage1"] == {"miou": 0.64, "run": "stage1-0", "train_wall_s": 3.0}
     assert out["gates"] == {"stage1": True, "hsv_over_blank": True}  # 0.64 >= 0.6, 0.12 >= 0.10
+
+
+def test_each_restart_trains_on_its_own_pretraining_set(tmp_path):
+    """`depth_network.network_phases`: each phase fine-tunes the one before it, on the frames
+    its restart names (the third phase on more frames than the first two); the context is left
+    on the recipe's first set (the layout bound's)."""
+    from irdepth_experiments import depth_network
+
+    recipe = depth_network.Recipe(frames=60, restarts=((8, 5e-5, 60), (8, 5e-5, 120)))
+    sets, asked = [], []
+
+    def result(kind, overrides, seed):
+        asked.append((overrides, sets[-1]))
+        return {"run": f"depth-{len(asked)}"}
+
+    ctx = types.SimpleNamespace(cache=str(tmp_path), use_pretraining_set=sets.append, result=result)
+    records = depth_network.network_phases(ctx, "rgb", recipe)
+    assert [r["run"] for r in records] == ["depth-1", "depth-2", "depth-3"]
+    assert [frames for _, frames in asked] == [60, 60, 120] and sets[-1] == 60
+    assert f"depth.checkpoint={tmp_path}/runs/depth-2" in asked[2][0]
+    assert "then 8 steps from it at 5e-05 (fresh optimizer, poly decay) on 120 frames" in \
+        depth_network._made_by({"height": 8, "width": 8, "scenes": "varied", "seed": 2}, recipe)
 
 
 def test_layout_bound_worked_by_hand():
