@@ -41,8 +41,9 @@ GATE_HSV_MARGIN = 0.10
 GATE_BLANK_HEALTHY = 0.8
 LAYOUT_TRAIN_FRAMES = 400  # training frames the layout bound is fitted on (every k-th)
 GATE_RECORD = os.path.join(REPO, "experiments", "results", "depth_network.json")
-PILOT_RECORD = os.path.join(REPO, "experiments", "results", "depth_pilot.json")
 """Gate 1 as measured by ``--commit`` on the committed networks (`claims.json` shows it)."""
+PILOT_RECORD = os.path.join(REPO, "experiments", "results", "depth_pilot.json")
+"""The pilot (`pilot`, gates 2 and 3 at seed 0) as measured by ``--pilot --commit``."""
 
 
 @dataclasses.dataclass(frozen=True)

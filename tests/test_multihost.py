@@ -123,7 +123,6 @@ def test_cli_train_on_two_processes_equals_one_process_with_two_devices(syntheti
     from irdepth_jax.cli import EXIT_INTERRUPTED
 
     quick = [a for a in QUICK if a not in ("--devices", "1")]  # QUICK's two-level UNet
-    model = MODEL
     common = ["train", "stage1", "--data", synthetic_data, "--steps", 2, "--stop-at", 2, *quick]
     one, two = tmp_path / "one_process", tmp_path / "two_processes"
     port = free_port()
@@ -141,8 +140,8 @@ def test_cli_train_on_two_processes_equals_one_process_with_two_devices(syntheti
     for ref, got in losses:
         for key in ("loss", "recon", "grad_norm"):
             np.testing.assert_allclose(got[key], ref[key], rtol=1e-5, err_msg=key)
-    ref_model, _ = final_params(one, "stage1_i1", model)
-    got_model, _ = final_params(two, "stage1_i1", model)
+    ref_model, _ = final_params(one, "stage1_i1", MODEL)
+    got_model, _ = final_params(two, "stage1_i1", MODEL)
     ref_leaves = jax.tree_util.tree_leaves_with_path(ref_model)
     got_leaves = jax.tree.leaves(got_model)
     assert len(ref_leaves) == len(got_leaves)

@@ -123,7 +123,7 @@ def test_stage1_step_is_finite_and_learns(unet_vars, batch, phase):
                               jax.random.PRNGKey(0), lr_fns)
     step = jax.jit(make_train_step(stage1_loss_fn(CFG, phase), None, CFG.stage1.accum_steps))
     # the arrays the training loop feeds, placed as it places them: the program is then the one
-    # `irdepth train stage1` runs on the tests' 32x48 frames (one compile, shared by the cache)
+    # the --quick tables train with (the preset at 32x48; one compile, shared by the cache)
     state, inputs = jax.device_put((state, device_batch(batch, phase, CFG)), jax.devices()[0])
     losses = []
     for _ in range(6):
