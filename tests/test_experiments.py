@@ -407,8 +407,9 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
         image = "blank" if "stage2.preprocessing=blank" in overrides else "rgb"
         return records[image, 2 if any(o.startswith("depth.checkpoint=") for o in overrides) else 1]
 
-    ctx = types.SimpleNamespace(cache=str(cache), use_pretraining_set=lambda frames: info, result=result)
-    recipe = depth_network.Recipe(restarts=((8000, 5e-5, 6000),))  # two phases
+    ctx = types.SimpleNamespace(cache=str(cache), result=result,
+                                use_pretraining_set=lambda frames: {**info, "made_by": f"rendered {frames}"})
+    recipe = depth_network.Recipe(frames=6000, restarts=((8000, 5e-5, 12000),))  # two phases
     written = depth_network.commit_networks(ctx, recipe, into=str(tmp_path / "committed"), command="CMD")
     committed = {(image, phase): tmp_path / "committed" / f"depth-{image}-{phase}"
                  for image in ("rgb", "blank") for phase in (1, 2)}
@@ -425,7 +426,9 @@ def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(
     made_by = (rgb / "MADE_BY.md").read_text()
     assert "`CMD`" in made_by and "0.9000" in made_by and "blank: the same on a constant grey image with" in made_by
     assert "phase 2 of 2" in made_by and "then 8000 steps from it" in made_by
-    assert "0.3000" in (committed["blank", 1] / "MADE_BY.md").read_text()
+    assert "Pretraining data of this phase: `rendered 12000`" in made_by
+    blank_made_by = (committed["blank", 1] / "MADE_BY.md").read_text()
+    assert "0.3000" in blank_made_by and "Pretraining data of this phase: `rendered 6000`" in blank_made_by
 
 
 def test_pilot_runs_the_three_rows_from_the_pretrained_network_and_gives_gate_3s_margins(tmp_path):
@@ -511,7 +514,8 @@ def test_depth_tables_from_a_pretrained_depth_network(quick_results, quick_cache
     assert set(network) >= {"rgb_d1", "blank_d1", "passed", "rule", "made_by"}
     assert 0 <= network["blank_d1"] <= 1 and 0 <= network["rgb_d1"] <= 1
     assert network["passed"] is False  # two steps of pretraining read nothing
-    assert "pretrain-n24" in network["pretraining_data"]
+    assert len(network["pretraining_data"]) == 2  # one set per phase: QUICK_RECIPE's 24 frames
+    assert all(made_by.startswith("write_synthetic_dataset(path, 24, 0, ") for made_by in network["pretraining_data"])
     runs = os.path.join(quick_cache, "runs")
     for row in record["rows"]:
         with open(os.path.join(runs, row["per_seed"]["0"]["run"], "config.json")) as f:
