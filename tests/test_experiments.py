@@ -506,7 +506,7 @@ def test_depth_tables_from_a_pretrained_depth_network(quick_results, quick_cache
     record the pretraining gate, and the claims of such a table are gated on it."""
     quick_results["table3_multitask_segmentation"]  # the Stage I run, shared through the cache
     script = load_script("table7_sky_loss")
-    out = tmp_path / "table7"
+    out = tmp_path / "table7_sky_loss"  # claims.load_results finds a table by its name
     record = script.main(script.TABLE, ["--quick", "--depth-init", "pretrained", "--cache", quick_cache,
                                         "--out", str(out), "--no-progress"])
     network = record["depth_network"]
