@@ -137,9 +137,10 @@ def network_phases(ctx: Context, image: str, recipe: Recipe = RECIPE) -> list[di
     """The evaluation records of the recipe's phases for the network trained on `image` ('rgb'
     or 'blank'), first to last (each trained and evaluated first when not cached; the last is
     the network)."""
-    ctx.use_pretraining_set(recipe.frames)
+    first, *later = recipe.phase_frames()
+    ctx.use_pretraining_set(first)
     records = [ctx.result("depth", recipe.overrides(image), recipe.seed)]
-    for restart, (_, _, frames) in enumerate(recipe.restarts):
+    for restart, frames in enumerate(later):
         previous = os.path.join(ctx.cache, "runs", records[-1]["run"])
         ctx.use_pretraining_set(frames)
         records.append(ctx.result("depth", recipe.restart_overrides(image, restart, previous), recipe.seed))
