@@ -33,6 +33,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import glob
 import hashlib
 import json
 import os
@@ -54,11 +55,57 @@ EVAL_SEED = 1  # its evaluation set: other scenes of the same distribution
 PRETRAIN_SEED = 2  # the depth pretraining set (visible images + depth): other scenes again
 MS2_STRIDE = 10  # the MS2 protocol evaluates every 10th test frame
 COMMITTED_RUNS = os.path.join(REPO, "experiments", "pretrained")
-"""Runs committed with the repository, each under its cache name (``<kind>-<hash>``): the
-pretrained depth network of `irdepth_experiments.depth_network` (its weights, without the optimizer
-state) and the evaluations of it and of its blank control, with the commands that made them.
-Pretraining takes about an hour on a 2-core machine; a cache that lacks one of these runs starts
-from the committed copy (same config, same rendered data, same key) instead of training it."""
+"""Runs committed with the repository (`commit_run`), each under its cache name
+(``<kind>-<hash>``): the pretrained depth network of `irdepth_experiments.depth_network` (its
+weights, without the optimizer state) and the evaluations of it and of its blank control; the
+protocol's Stage I models (``runner --commit-stage1``: weights and evaluations), with the
+commands that made them. Each took from 40 minutes (a Stage I model) to hours (the depth
+network) on a 2-core machine; a cache that lacks one of these runs starts from the committed
+copy (same config, same rendered data, same key) instead of training it."""
+COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
+                   "eval-*.npz")
+"""What `commit_run` copies of a run's records (paths inside the cache made relative to it)."""
+
+
+def cache_relative(text: str, cache: str) -> str:
+    """`text` with the paths inside the experiment cache `cache` made relative to it and the
+    cache itself named `<cache>` (a committed record names no machine's folders)."""
+    cache = cache.rstrip(os.sep)
+    return text.replace(cache + os.sep, "").replace(cache, "<cache>")
+
+
+def commit_run(cache: str, run: str, into: str, made_by: str, weights: str | None = None) -> str:
+    """Copies the run ``CACHE/runs/<run>`` into ``<into>/<run>`` (replacing it): its records
+    (`COMMITTED_FILES`, text through `cache_relative`), a MADE_BY.md of `made_by`, and with
+    `weights` (a checkpoint folder: 'stage1_i2', 'stage2') that folder's last checkpoint without
+    its optimizer state (the `train` item, twice the weights' size); returns the directory."""
+    source, target = os.path.join(cache, "runs", run), os.path.join(into, run)
+    shutil.rmtree(target, ignore_errors=True)
+    os.makedirs(target)
+    for pattern in COMMITTED_FILES:
+        for path in glob.glob(os.path.join(source, pattern)):
+            if path.endswith((".json", ".jsonl")):
+                with open(path) as f:
+                    text = cache_relative(f.read(), cache)
+                with open(os.path.join(target, os.path.basename(path)), "w") as f:
+                    f.write(text)
+            else:
+                shutil.copy2(path, target)
+    if weights is not None:
+        checkpoints = os.path.join(source, "checkpoints", weights)
+        last = max((d for d in os.listdir(checkpoints) if d.isdigit()), key=int)
+        copied = os.path.join(target, "checkpoints", weights, last)
+        shutil.copytree(os.path.join(checkpoints, last), copied,
+                        ignore=lambda directory, names: ["train"] if directory.endswith(last) else [])
+        meta = os.path.join(copied, "meta", "metadata")  # the run's config and provenance
+        if os.path.exists(meta):
+            with open(meta) as f:
+                text = cache_relative(f.read(), cache)
+            with open(meta, "w") as f:
+                f.write(text)
+    with open(os.path.join(target, "MADE_BY.md"), "w") as f:
+        f.write(cache_relative(made_by, cache))
+    return target
 
 
 @dataclasses.dataclass(frozen=True)
@@ -349,6 +396,7 @@ class Context:
         from irdepth_jax.train.stages import train_stage1
 
         workdir = self.run_dir("stage1", cfg)
+        self._adopt_committed(workdir)  # before its I-1 phase is copied in
         i1_ckpt = os.path.join(workdir, "checkpoints", "stage1_i1")
         if self._trained(workdir) is None and not os.path.isdir(i1_ckpt):
             i1_cfg = i1_config(cfg, self.base)

@@ -22,17 +22,23 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import glob
 import json
 import os
-import shutil
 import sys
 import time
 from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
+from irdepth_experiments.cache import (
+    COMMITTED_RUNS,
+    DEFAULT_CACHE,
+    EVAL_SPLIT,
+    REPO,
+    Context,
+    cache_relative,
+    commit_run,
+)
 
 GATE_RGB_D1 = 0.85
 GATE_RGB_MARGIN = 0.15
@@ -231,33 +237,6 @@ def pilot(ctx: Context, seed: int = 0, recipe: Recipe = RECIPE) -> dict:
             "gates": {"stage1": miou >= GATE_STAGE1_MIOU, "hsv_over_blank": margins[HSV_ROW] >= GATE_HSV_MARGIN}}
 
 
-COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
-                   "eval-*.npz")
-"""What `commit_networks` copies of a run: its records (paths inside the cache made relative to
-it); of the pretrained network's last phase also the last checkpoint's weights (the `model`
-item; not the optimizer state, twice their size)."""
-
-
-def cache_relative(text: str, cache: str) -> str:
-    """`text` with the paths inside the experiment cache `cache` made relative to it and the
-    cache itself named `<cache>` (a committed record names no machine's folders)."""
-    cache = cache.rstrip(os.sep)
-    return text.replace(cache + os.sep, "").replace(cache, "<cache>")
-
-
-def _copy_records(run: str, target: str, cache: str) -> None:
-    """Copies `run`'s `COMMITTED_FILES` into `target`, text through `cache_relative`."""
-    for pattern in COMMITTED_FILES:
-        for path in glob.glob(os.path.join(run, pattern)):
-            if path.endswith((".json", ".jsonl")):
-                with open(path) as f:
-                    text = cache_relative(f.read(), cache)
-                with open(os.path.join(target, os.path.basename(path)), "w") as f:
-                    f.write(text)
-            else:
-                shutil.copy2(path, target)
-
-
 def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED_RUNS,
                     command: str = "", images: Sequence[str] = ("rgb", "blank")) -> list[str]:
     """Copies the networks trained on `images` ('rgb': the pretrained network, 'blank': its
@@ -270,25 +249,8 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
     for image in images:
         phases = network_phases(ctx, image, recipe)
         for number, record in enumerate(phases, 1):
-            run = os.path.join(ctx.cache, "runs", record["run"])
-            target = os.path.join(into, record["run"])
-            shutil.rmtree(target, ignore_errors=True)
-            os.makedirs(target)
-            _copy_records(run, target, ctx.cache)
-            if image == "rgb" and number == len(phases):
-                checkpoints = os.path.join(run, "checkpoints", "stage2")
-                last = max((d for d in os.listdir(checkpoints) if d.isdigit()), key=int)
-                copied = os.path.join(target, "checkpoints", "stage2", last)
-                shutil.copytree(os.path.join(checkpoints, last), copied,
-                                ignore=lambda directory, names: ["train"] if directory.endswith(last) else [])
-                meta = os.path.join(copied, "meta", "metadata")  # the run's config and provenance
-                if os.path.exists(meta):
-                    with open(meta) as f:
-                        text = cache_relative(f.read(), ctx.cache)
-                    with open(meta, "w") as f:
-                        f.write(text)
-            weights = ("its weights are in checkpoints/" if image == "rgb" and number == len(phases)
-                       else "records only (weights not committed)")
+            last = image == "rgb" and number == len(phases)
+            weights = ("its weights are in checkpoints/" if last else "records only (weights not committed)")
             made_by = (f"# Depth Anything V2 trained on rendered "
                        f"{'visible' if image == 'rgb' else 'blank'} images: phase {number} of "
                        f"{len(phases)}\n\nMade by `{command}` (`experiments/depth_network.py`): "
@@ -297,8 +259,7 @@ def commit_networks(ctx: Context, recipe: Recipe = RECIPE, into: str = COMMITTED
                        f"{record['stage2']['all']['d1']:.4f}.\nRecipe: "
                        f"`{json.dumps(dataclasses.asdict(recipe))}`. Pretraining data of this phase: "
                        f"`{sets[number - 1]}`.\n")
-            with open(os.path.join(target, "MADE_BY.md"), "w") as f:
-                f.write(cache_relative(made_by, ctx.cache))
+            target = commit_run(ctx.cache, record["run"], into, made_by, "stage2" if last else None)
             written.append(target)
     return written
 

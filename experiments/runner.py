@@ -27,7 +27,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.cache import DEFAULT_CACHE, EVAL_SPLIT, REPO, Context
+from irdepth_experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context, commit_run
 from irdepth_experiments.report import git_commit, hardware, summarise, write_outputs
 from irdepth_jax.hostmem import keep_freed_memory
 
@@ -146,6 +146,11 @@ def parse_args(table: Table, argv: Sequence[str] | None = None) -> argparse.Name
                          "starts from the released weights; trained once into the cache, with "
                          "its gate measured: experiments/depth_network.py)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
+    ap.add_argument("--commit-stage1", action="store_true",
+                    help="copy the Stage I models the Stage II rows started from (weights "
+                         "without the optimizer state, ~1 MB each, and their evaluations) into "
+                         "experiments/pretrained, where a clone's cache takes them instead of "
+                         "training them again (~40 minutes each on the protocol, 2 cores)")
     ap.add_argument("--no-committed-runs", action="store_true",
                     help="train every run, also those committed with the repository "
                          "(experiments/pretrained: the pretrained depth network and its blank "
@@ -216,6 +221,35 @@ def _row(ctx: Context, table: Table, arm: Arm, seeds: Sequence[int], index: int,
             "summary": {c: summarise([v[c] for v in per_seed.values()]) for c in table.columns}}
 
 
+def _stage1_models(ctx: Context, table: Table, seeds: Sequence[int]) -> list[dict] | None:
+    """The Stage I models the table's Stage II rows started from, each once: [{'seed', 'run',
+    'miou' (on the evaluation set; None without labels)}] (`claims.depth_gates` reads the Stage I gate from it);
+    None for a table without Stage II rows."""
+    overrides = list(dict.fromkeys(a.overrides for a in table.arms if a.kind == "stage2"))
+    if not overrides:
+        return None
+    models = {}
+    for seed in seeds:
+        for o in overrides:
+            record = ctx.result("stage1", o, seed)
+            miou = record["stage1"]["all"].get("miou")  # None without segmentation labels
+            models[record["run"]] = {"seed": seed, "run": record["run"],
+                                     "miou": None if miou is None else round(miou, 4)}
+    return list(models.values())
+
+
+def _commit_stage1(ctx: Context, record: dict) -> None:
+    """`commit_run` of each of `record`'s Stage I models into `COMMITTED_RUNS`."""
+    for model in record["stage1_models"] or ():
+        made_by = (f"# Stage I model (MTSA-UNet), seed {model['seed']}\n\nMade by `{record['command']}` "
+                   f"(git {record['git']}, with --commit-stage1): a Stage I model that the table's "
+                   f"Stage II rows started from; its last checkpoint's weights (without the "
+                   f"optimizer state) and its evaluation. mIoU {model['miou']} on the evaluation "
+                   f"set ({record['eval_data']['path']}).\n")
+        path = commit_run(ctx.cache, model["run"], COMMITTED_RUNS, made_by, "stage1_i2")
+        ctx.log(f"[{record['table']}] committed {os.path.relpath(path, REPO)}")
+
+
 # --------------------------------------------------------------------------- entry point
 def main(table: Table, argv: Sequence[str] | None = None) -> dict:
     """Runs (or reuses) every run `table` needs for each seed and writes its outputs.
@@ -244,11 +278,14 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
         "eval_data": ctx.eval_info, "hardware": hardware(), "git": git_commit(),
         "columns": list(table.columns), "rows": rows, "paper": table.paper,
         "depth_init": args.depth_init, "depth_network": depth_network,
+        "stage1_models": _stage1_models(ctx, table, args.seeds),
         "wall_s": round(time.time() - started, 1),
         "runs_wall_s": round(sum({v["run"]: v["run_wall_s"] for r in rows
                                   for v in r["per_seed"].values()}.values()), 1),
     }
     write_outputs(table, record, frames, args.out)
+    if args.commit_stage1:
+        _commit_stage1(ctx, record)
     ctx.log(f"[{table.name}] wrote {args.out}/results.md, results.json, frames.npz, figure.png "
             f"({record['wall_s']:.0f} s)")
     return record

@@ -110,17 +110,18 @@ def test_verdicts():
 
 def _depth_records(hsv_d1, blank_d1, network, miou):
     """Synthetic results.json records: table 1 (HSV, HE, blank: δ<1.25 per seed) with its
-    frames.npz stand-in, and table 3's multi-task mIoU."""
+    frames.npz stand-in, and the mIoU of the Stage I models its rows started from (two seeds:
+    `miou` - 0.01 and `miou` + 0.01)."""
     def row(series, d1):
         return {"series": series, "group": "all", "label": series,
                 "per_seed": {str(s): {"d1": v, "abs_rel": 0.1} for s, v in enumerate(d1)}}
     t1 = {"rows": [row("HSV (ours)", hsv_d1), row("HE", [v - 0.05 for v in hsv_d1]),
                    row("CLAHE", hsv_d1), row("camera-like (IRCBA stand-in)", hsv_d1)]
           + ([row("blank (control)", blank_d1)] if blank_d1 else []),
-          "depth_network": network}
-    t3 = {"rows": [{"series": "multi-task", "group": "all", "label": "multi-task",
-                    "per_seed": {"0": {"miou": miou}, "1": {"miou": miou}}}]}
-    return {"table1_preprocessing": t1, "table3_multitask_segmentation": t3}
+          "depth_network": network,
+          "stage1_models": [{"seed": 0, "run": "stage1-a", "miou": miou - 0.01},
+                            {"seed": 1, "run": "stage1-b", "miou": miou + 0.01}]}
+    return {"table1_preprocessing": t1}
 
 
 def test_depth_claims_are_undecidable_unless_every_gate_passes():
@@ -146,7 +147,15 @@ def test_depth_claims_are_undecidable_unless_every_gate_passes():
     records = _depth_records(*good, network, 0.7)
     control = claims.blank_control_gate(claim, records[claim.table])
     assert control["margin_d1"] == pytest.approx(0.81 - 0.65)
-    assert claims.depth_gates(records)["stage1"]["miou"] == 0.7
+    assert claims.depth_gates(records)["stage1"]["miou"] == pytest.approx(0.7)
+    # a depth table that does not record its Stage I models' mIoU (made before the record)
+    del records[claim.table]["stage1_models"]
+    assert claims._undecidable(claim, records[claim.table], claims.depth_gates(records)) == \
+        "undecidable: Stage I gate"
+    # the lowest depth table decides: table 7's Stage I below the gate fails table 1's claims too
+    records = _depth_records(*good, network, 0.7)
+    records["table7_sky_loss"] = {"rows": [], "stage1_models": [{"seed": 0, "run": "s", "miou": 0.5}]}
+    assert not claims.depth_gates(records)["stage1"]["passed"]
     # a claim outside the depth tables is never gated
     table2 = claims.Claim("table2_multitask_reconstruction", "", ("a", "all"), ("b", "all"), "ssim",
                           ("a", "b"))

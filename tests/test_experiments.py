@@ -380,6 +380,43 @@ def test_a_committed_run_is_copied_into_the_cache_instead_of_trained(quick_cache
     assert sorted(os.listdir(os.path.join(ctx.cache, "runs", name))) == sorted(os.listdir(committed))
 
 
+def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick_cache, tmp_path, monkeypatch):
+    """`--commit-stage1`: the Stage I model table 7's rows started from is committed (its last
+    checkpoint's weights without the optimizer state, its evaluation, a MADE_BY.md; no machine
+    path), and a fresh cache takes it instead of training Stage I: the committed evaluation is
+    read, no I-1 phase is trained, and a Stage II run trains on its weights."""
+    from irdepth_experiments import cache
+
+    committed = tmp_path / "committed"
+    monkeypatch.setattr(cache, "COMMITTED_RUNS", str(committed))
+    monkeypatch.setattr(runner, "COMMITTED_RUNS", str(committed))
+    script = load_script("table7_sky_loss")
+    record = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out", str(tmp_path / "t7"),
+                                        "--no-progress", "--commit-stage1"])
+    (model,) = record["stage1_models"]
+    assert model["seed"] == 0 and 0 <= model["miou"] <= 1
+    path = committed / model["run"]
+    (step,) = os.listdir(path / "checkpoints" / "stage1_i2")
+    assert "train" not in os.listdir(path / "checkpoints" / "stage1_i2" / step)
+    assert "model" in os.listdir(path / "checkpoints" / "stage1_i2" / step)
+    assert {"MADE_BY.md", "config.json", "trained.json"} <= set(os.listdir(path))
+    assert "seed 0" in (path / "MADE_BY.md").read_text() and "--commit-stage1" in (path / "MADE_BY.md").read_text()
+    for name in os.listdir(path):
+        if name.endswith((".json", ".md")):
+            assert quick_cache not in (path / name).read_text(), name
+
+    fresh = tmp_path / "fresh"
+    fresh.mkdir()
+    os.symlink(os.path.join(quick_cache, "data"), fresh / "data")  # the same rendered frames
+    ctx = runner.context(quick=True, cache=str(fresh))
+    evaluation = ctx.result("stage1", (), 0)
+    assert evaluation["run"] == model["run"] and round(evaluation["stage1"]["all"]["miou"], 4) == model["miou"]
+    stage2 = ctx.result("stage2", ("stage2.preprocessing=hsv",), 0)
+    assert np.isfinite(stage2["stage2"]["all"]["d1"])
+    assert not (fresh / "runs" / model["run"] / "checkpoints" / "stage1_i1").exists()
+    assert not any(name.startswith("stage1_i1-") for name in os.listdir(fresh / "runs"))
+
+
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
     """`depth_network.commit_networks`: every phase of both networks keeps its records, with
     paths inside the cache made relative to it; the pretrained network's last phase also its
