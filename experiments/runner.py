@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
 import os
 import shlex
 import sys
@@ -27,7 +28,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.cache import COMMITTED_RUNS, DEFAULT_CACHE, EVAL_SPLIT, REPO, Context, commit_run
+from irdepth_experiments.cache import (
+    COMMITTED_RUNS,
+    DEFAULT_CACHE,
+    EVAL_SPLIT,
+    REPO,
+    Context,
+    cache_relative,
+    commit_run,
+)
 from irdepth_experiments.report import git_commit, hardware, summarise, write_outputs
 from irdepth_jax.hostmem import keep_freed_memory
 
@@ -283,6 +292,7 @@ def main(table: Table, argv: Sequence[str] | None = None) -> dict:
         "runs_wall_s": round(sum({v["run"]: v["run_wall_s"] for r in rows
                                   for v in r["per_seed"].values()}.values()), 1),
     }
+    record = json.loads(cache_relative(json.dumps(record), ctx.cache))  # names no machine's folders
     write_outputs(table, record, frames, args.out)
     if args.commit_stage1:
         _commit_stage1(ctx, record)
