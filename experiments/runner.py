@@ -156,8 +156,9 @@ def parse_args(table: Table, argv: Sequence[str] | None = None) -> argparse.Name
                          "its gate measured: experiments/depth_network.py)")
     ap.add_argument("--no-progress", action="store_true", help="no progress bars")
     ap.add_argument("--commit-stage1", action="store_true",
-                    help="copy the Stage I models the Stage II rows started from (weights "
-                         "without the optimizer state, ~1 MB each, and their evaluations) into "
+                    help="copy the Stage I models the Stage II rows started from, and the "
+                         "table's own Stage I-2 rows' runs (weights without the optimizer state, "
+                         "~4 MB each at the small preset, and their evaluations) into "
                          "experiments/pretrained, where a clone's cache takes them instead of "
                          "training them again (~40 minutes each on the protocol, 2 cores)")
     ap.add_argument("--no-committed-runs", action="store_true",
@@ -248,14 +249,27 @@ def _stage1_models(ctx: Context, table: Table, seeds: Sequence[int]) -> list[dic
 
 
 def _commit_stage1(ctx: Context, record: dict) -> None:
-    """`commit_run` of each of `record`'s Stage I models into `COMMITTED_RUNS`."""
-    for model in record["stage1_models"] or ():
-        made_by = (f"# Stage I model (MTSA-UNet), seed {model['seed']}\n\nMade by `{record['command']}` "
-                   f"(git {record['git']}, with --commit-stage1): a Stage I model that the table's "
-                   f"Stage II rows started from; its last checkpoint's weights (without the "
-                   f"optimizer state) and its evaluation. mIoU {model['miou']} on the evaluation "
-                   f"set ({record['eval_data']['path']}).\n")
-        path = commit_run(ctx.cache, model["run"], COMMITTED_RUNS, made_by, "stage1_i2")
+    """`commit_run` into `COMMITTED_RUNS` of each Stage I model of `record`: those its Stage II
+    rows started from (`stage1_models`) and its own Stage I-2 rows' runs (tables 3, 5, 6: the
+    arms a later run would otherwise train again); says so when there is none."""
+    models = {m["run"]: (m["seed"], "a Stage I model that the table's Stage II rows started from")
+              for m in record["stage1_models"] or ()}
+    for row in record["rows"]:
+        if row["kind"] == "stage1":
+            models |= {v["run"]: (int(seed), f"the Stage I run of its row '{row['label']}'")
+                       for seed, v in row["per_seed"].items() if v["run"] not in models}
+    if not models:
+        ctx.log(f"[{record['table']}] --commit-stage1: no Stage I-2 model in this table (its rows "
+                "are Stage I-1 runs, minutes to train), nothing committed")
+    for run, (seed, what) in models.items():
+        with open(os.path.join(ctx.cache, "runs", run, f"eval-{ctx.eval_key}.json")) as f:
+            miou = json.load(f)["stage1"]["all"].get("miou")
+        made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{record['command']}` "
+                   f"(git {record['git']}, with --commit-stage1): {what}; its last checkpoint's "
+                   f"weights (without the optimizer state) and its evaluation. mIoU "
+                   f"{'n/a' if miou is None else round(miou, 4)} on the evaluation set "
+                   f"({record['eval_data']['path']}).\n")
+        path = commit_run(ctx.cache, run, COMMITTED_RUNS, made_by, "stage1_i2")
         ctx.log(f"[{record['table']}] committed {os.path.relpath(path, REPO)}")
 
 

@@ -384,7 +384,8 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     """`--commit-stage1`: the Stage I model table 7's rows started from is committed (its last
     checkpoint's weights without the optimizer state, its evaluation, a MADE_BY.md; no machine
     path), and a fresh cache takes it instead of training Stage I: the committed evaluation is
-    read, no I-1 phase is trained, and a Stage II run trains on its weights."""
+    read, no I-1 phase is trained, and a Stage II run trains on its weights. Table 3 commits its
+    own rows' Stage I runs."""
     from irdepth_experiments import cache
 
     committed = tmp_path / "committed"
@@ -415,6 +416,14 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     assert np.isfinite(stage2["stage2"]["all"]["d1"])
     assert not (fresh / "runs" / model["run"] / "checkpoints" / "stage1_i1").exists()
     assert not any(name.startswith("stage1_i1-") for name in os.listdir(fresh / "runs"))
+
+    # a Stage I table commits its own rows' runs (table 3: the multi-task and single-task arms)
+    script = load_script("table3_multitask_segmentation")
+    record = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out", str(tmp_path / "t3"),
+                                        "--no-progress", "--commit-stage1"])
+    runs = {r["per_seed"]["0"]["run"] for r in record["rows"]}
+    assert len(runs) == 2 and runs <= set(os.listdir(committed))
+    assert model["run"] in runs  # the multi-task arm is the model the depth rows started from
 
 
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
