@@ -285,8 +285,7 @@ class Context:
         self._adopt_committed(workdir)
         path = os.path.join(workdir, f"eval-{self.eval_key}.json")
         if os.path.exists(path):
-            with open(path) as f:
-                return json.load(f)
+            return self.evaluation(os.path.basename(workdir))
         train = {"stage1_i1": self._stage1_i1, "stage1": self._stage1, "stage2": self._stage2,
                  "depth": self._depth}
         if kind not in train:
@@ -330,6 +329,11 @@ class Context:
     def workdir(self, kind: str, overrides: tuple[str, ...], seed: int) -> str:
         """The directory of a row's run for `seed` (trained and evaluated first if not cached)."""
         return os.path.join(self.cache, "runs", self.result(kind, overrides, seed)["run"])
+
+    def evaluation(self, run: str) -> dict:
+        """The evaluation record `result` saved for the cached run named `run`."""
+        with open(os.path.join(self.cache, "runs", run, f"eval-{self.eval_key}.json")) as f:
+            return json.load(f)
 
     def frames(self, record: dict) -> dict[str, np.ndarray]:
         """The per-frame metrics saved beside an evaluation record of `result`."""

@@ -262,8 +262,7 @@ def _commit_stage1(ctx: Context, record: dict) -> None:
         ctx.log(f"[{record['table']}] --commit-stage1: no Stage I-2 model in this table (its rows "
                 "are Stage I-1 runs, minutes to train), nothing committed")
     for run, (seed, what) in models.items():
-        with open(os.path.join(ctx.cache, "runs", run, f"eval-{ctx.eval_key}.json")) as f:
-            miou = json.load(f)["stage1"]["all"].get("miou")
+        miou = ctx.evaluation(run)["stage1"]["all"].get("miou")
         made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{record['command']}` "
                    f"(git {record['git']}, with --commit-stage1): {what}; its last checkpoint's "
                    f"weights (without the optimizer state) and its evaluation. mIoU "
