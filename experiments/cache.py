@@ -33,11 +33,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import glob
 import hashlib
 import json
 import os
 import shutil
+import subprocess
 import tempfile
 import time
 from collections.abc import Callable
@@ -62,9 +64,50 @@ protocol's Stage I models (``runner --commit-stage1``: weights and evaluations),
 commands that made them. Each took from 40 minutes (a Stage I model) to hours (the depth
 network) on a 2-core machine; a cache that lacks one of these runs starts from the committed
 copy (same config, same rendered data, same key) instead of training it."""
-COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", "eval-*.json",
-                   "eval-*.npz")
+CODE_FILE = "code.json"
+"""A run's record of the package code that trained it: [{'git', 'digest'}], one entry per
+version, in order (more than one: the run was resumed after the package changed)."""
+COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metrics.jsonl", CODE_FILE,
+                   "eval-*.json", "eval-*.npz")
 """What `commit_run` copies of a run's records (paths inside the cache made relative to it)."""
+
+
+def git_commit() -> str:
+    """HEAD commit of the repository (+ '-dirty' with uncommitted changes to the code: the
+    package, the experiment scripts and pyproject.toml; not the results they write), or
+    'unknown'."""
+    code = ["irdepth_jax", "experiments", ":!experiments/results", "pyproject.toml"]
+    try:
+        head = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
+                              capture_output=True, text=True, check=True).stdout.strip()
+        dirty = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no",
+                                "--", *code], capture_output=True, text=True,
+                               check=True).stdout.strip()
+        return head + ("-dirty" if dirty else "")
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown"
+
+
+@functools.lru_cache(maxsize=1)
+def code_digest() -> str:
+    """sha1 (12 hex digits) of the package's Python sources (`irdepth_jax/**/*.py`, paths and
+    contents): the code that renders, trains and evaluates a run, whether committed or not."""
+    digest = hashlib.sha1()
+    package = os.path.join(REPO, "irdepth_jax")
+    for path in sorted(glob.glob(os.path.join(package, "**", "*.py"), recursive=True)):
+        digest.update(os.path.relpath(path, package).encode() + b"\0")
+        with open(path, "rb") as f:
+            digest.update(f.read() + b"\0")
+    return digest.hexdigest()[:12]
+
+
+def code_versions(workdir: str) -> list[dict] | None:
+    """The run's `CODE_FILE` record, or None for a run trained before it was kept."""
+    path = os.path.join(workdir, CODE_FILE)
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
 
 
 def cache_relative(text: str, cache: str) -> str:
@@ -262,6 +305,19 @@ class Context:
         that Stage II runs of any Stage II / depth setting share."""
         return dataclasses.replace(cfg, stage2=self.base.stage2, depth=self.base.depth)
 
+    def stage1_steps(self, overrides: tuple[str, ...], seed: int) -> int:
+        """Optimizer steps of the Stage I run (I-1 + I-2) of a row's `overrides` for `seed`, as
+        `irdepth_jax.train.stages.train_stage1` counts them on the benchmark's training data."""
+        from irdepth_jax.data.source import phase_frames, stage1_i2_frames
+        from irdepth_jax.train.phase import steps_for
+
+        cfg = self.config("stage1", overrides, seed)
+        s1 = cfg.stage1
+        i1_frames = len(phase_frames(self.source, "stage1_i1", cfg)[1])
+        i2_frames = len(stage1_i2_frames(self.source, cfg)[1])
+        return (steps_for(s1.epochs_i1, s1.steps_i1, i1_frames, s1.batch_size)
+                + steps_for(s1.epochs_i2, s1.steps_i2, i2_frames, s1.batch_size))
+
     def run_dir(self, kind: str, cfg, data: str | None = None) -> str:
         """The cache directory of the run of `kind` with config `cfg`, trained on the benchmark's
         training data (or the dataset at `data`)."""
@@ -376,6 +432,7 @@ class Context:
                 return done
             self.log(f"[{kind} seed {cfg.seed}] training in "
                      f"{os.path.relpath(opts.workdir, self.cache)}")
+            self._record_code(opts.workdir, kind, cfg.seed)
             started = time.time()
             try:
                 fn(cfg, self.source if source is None else source, opts)
@@ -389,6 +446,30 @@ class Context:
         finally:
             release(lock)
         return wall_s
+
+    def _record_code(self, workdir: str, kind: str, seed: int) -> None:
+        """Adds this package version to the run's `CODE_FILE` unless it is the last one there,
+        and says so loudly when it continues a run that other code trained so far (a run resumed
+        after the package changed, or a Stage I on an I-1 run of other code): a rounding-level
+        change of the code moves a Stage I by as much as a seed does, so such a run is neither
+        version's and a fresh run of the same command may differ. A run with checkpoints but no
+        record was trained before records were kept: 'unknown'."""
+        versions = code_versions(workdir)
+        if versions is None:
+            versions = ([{"git": "unknown", "digest": "unknown"}]
+                        if os.path.isdir(os.path.join(workdir, "checkpoints")) else [])
+        now = {"git": git_commit(), "digest": code_digest()}
+        if versions and versions[-1]["digest"] == now["digest"]:
+            return
+        if versions:
+            last = versions[-1]
+            self.log(f"[{kind} seed {seed}] WARNING: {os.path.relpath(workdir, self.cache)} was "
+                     f"trained so far by other package code (git {last['git']}, digest "
+                     f"{last['digest']}) than continues it now (git {now['git']}, digest "
+                     f"{now['digest']}): its result is neither version's (recorded in its "
+                     f"{CODE_FILE} and in the table's provenance); delete the run to train it "
+                     "with this code alone")
+        _write_json(os.path.join(workdir, CODE_FILE), versions + [now])
 
     def _stage1_i1(self, cfg) -> float:
         from irdepth_jax.train.stages import train_stage1
@@ -406,8 +487,10 @@ class Context:
             i1_cfg = i1_config(cfg, self.base)
             self._stage1_i1(i1_cfg)
             os.makedirs(os.path.dirname(i1_ckpt), exist_ok=True)
-            shutil.copytree(os.path.join(self.run_dir("stage1_i1", i1_cfg), "checkpoints",
-                                         "stage1_i1"), i1_ckpt)
+            i1_run = self.run_dir("stage1_i1", i1_cfg)
+            shutil.copytree(os.path.join(i1_run, "checkpoints", "stage1_i1"), i1_ckpt)
+            if os.path.exists(os.path.join(i1_run, CODE_FILE)):  # the code that trained I-1
+                shutil.copy2(os.path.join(i1_run, CODE_FILE), workdir)
         opts = self._options(workdir)
         opts.resume = True  # continues from the copied I-1 checkpoint
         return self._train(train_stage1, "stage1", cfg, opts)

@@ -308,7 +308,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if piloted is not None:
         print(json.dumps(piloted, indent=2))
     if args.commit:
-        from irdepth_experiments.report import git_commit, hardware
+        from irdepth_experiments.cache import git_commit
+        from irdepth_experiments.report import hardware
 
         command = " ".join(["python experiments/depth_network.py", *(argv if argv is not None else sys.argv[1:])])
         made = {"command": command, "git": git_commit(), "hardware": hardware(), "date": time.strftime("%Y-%m-%d")}

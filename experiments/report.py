@@ -8,12 +8,9 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from irdepth_experiments.cache import REPO
 
 if TYPE_CHECKING:
     from irdepth_experiments.runner import Table
@@ -43,22 +40,6 @@ def hardware() -> dict:
             "devices": [str(d) for d in jax.devices()][:1] + (
                 [f"... {len(jax.devices())} devices"] if len(jax.devices()) > 1 else []),
             "backend": jax.default_backend()}
-
-
-def git_commit() -> str:
-    """HEAD commit of the repository (+ '-dirty' with uncommitted changes to the code: the
-    package, the experiment scripts and pyproject.toml; not the results they write), or
-    'unknown'."""
-    code = ["irdepth_jax", "experiments", ":!experiments/results", "pyproject.toml"]
-    try:
-        head = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
-                              capture_output=True, text=True, check=True).stdout.strip()
-        dirty = subprocess.run(["git", "-C", REPO, "status", "--porcelain", "--untracked-files=no",
-                                "--", *code], capture_output=True, text=True,
-                               check=True).stdout.strip()
-        return head + ("-dirty" if dirty else "")
-    except (OSError, subprocess.CalledProcessError):
-        return "unknown"
 
 
 # --------------------------------------------------------------------------- summary
@@ -139,9 +120,29 @@ def markdown(table: Table, record: dict) -> str:
               f"- code: git {record['git']}; wall time of this invocation "
               f"{record['wall_s']:.0f} s (cached runs count 0); training + evaluation time of "
               f"the runs read here, as measured when each ran: {record['runs_wall_s']:.0f} s",
+              _runs_code(record),
               "- per-frame metrics of every row and seed: frames.npz beside this file",
               ""]
     return "\n".join(lines)
+
+
+def _runs_code(record: dict) -> str:
+    """The provenance line on the package code that trained the runs a table reads (each run's
+    `cache.CODE_FILE` record, per seed in results.json as 'code')."""
+    runs = {v["run"]: v.get("code") for row in record["rows"] for v in row["per_seed"].values()}
+    counts: dict[str, int] = {}
+    mixed = []
+    for run, versions in runs.items():
+        if versions is not None and len(versions) > 1:
+            mixed.append(f"{run} (git {' then '.join(v['git'] for v in versions)})")
+            continue
+        key = f"git {versions[0]['git']}" if versions else "not recorded (trained before runs kept it)"
+        counts[key] = counts.get(key, 0) + 1
+    parts = [f"{key}: {n} run{'s' * (n > 1)}" for key, n in counts.items()]
+    if mixed:
+        parts.append("**resumed after the package changed, so neither version's (a fresh run of "
+                     f"the command may differ): {', '.join(mixed)}**")
+    return "- package code that trained the runs read here: " + "; ".join(parts)
 
 
 def figure(table: Table, record: dict, path: str) -> None:

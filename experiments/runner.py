@@ -35,9 +35,11 @@ from irdepth_experiments.cache import (
     REPO,
     Context,
     cache_relative,
+    code_versions,
     commit_run,
+    git_commit,
 )
-from irdepth_experiments.report import git_commit, hardware, summarise, write_outputs
+from irdepth_experiments.report import hardware, summarise, write_outputs
 from irdepth_jax.hostmem import keep_freed_memory
 
 RESULTS = os.path.join(REPO, "experiments", "results")
@@ -73,6 +75,9 @@ class Arm:
       group: the metric group of the evaluation result: 'all' or a condition ('day', ...).
       metrics: which metrics of the run: None (the kind's: 'stage1' or 'stage2', the
         protocol's alignment) or 'stage2_median' (depth median-scaled per image).
+      equal_steps: a 'stage1_i1' row trained for as many optimizer steps as the Stage I run
+        (I-1 + I-2) of the same seed and settings: the single-task control given the
+        multi-task arm's training length (``stage1.steps_i1`` set to it).
     """
 
     label: str
@@ -80,6 +85,7 @@ class Arm:
     overrides: tuple[str, ...] = ()
     group: str = "all"
     metrics: str | None = None
+    equal_steps: bool = False
 
     @property
     def key(self) -> str:
@@ -212,9 +218,12 @@ def _row_frames(ctx: Context, arm: Arm, record: dict, columns: Sequence[str]) ->
 def _row(ctx: Context, table: Table, arm: Arm, seeds: Sequence[int], index: int, frames: dict):
     """The results.json row of `arm` (its per-frame values go into `frames`)."""
     per_seed = {}
+    overrides = arm.overrides
+    if arm.equal_steps:  # frame counts and lengths do not depend on the seed
+        overrides += (f"stage1.steps_i1={ctx.stage1_steps(arm.overrides, seeds[0])}",)
     for seed in seeds:
         ctx.log(f"[{table.name}] {arm.label}: seed {seed}")
-        record = ctx.result(arm.kind, arm.overrides, seed)
+        record = ctx.result(arm.kind, overrides, seed)
         result = record[arm.key]
         if arm.group not in result:
             raise SystemExit(f"{arm.label}: no '{arm.group}' frames in the {EVAL_SPLIT} split "
@@ -222,12 +231,14 @@ def _row(ctx: Context, table: Table, arm: Arm, seeds: Sequence[int], index: int,
         group = result[arm.group]
         per_seed[str(seed)] = {c: group[c] for c in table.columns} | {
             "count": group["count"], "run": record["run"],
+            "code": code_versions(os.path.join(ctx.cache, "runs", record["run"])),
             "run_wall_s": round(record["train_wall_s"] + record["eval_wall_s"], 1)}
         for col, values in _row_frames(ctx, arm, record, table.columns).items():
             frames[f"{index}:{seed}:{col}"] = values
     label = arm.label if arm.group == "all" else f"{arm.label} ({arm.group})"
     return {"label": label, "series": arm.label, "group": arm.group, "kind": arm.kind,
-            "metrics": arm.key, "overrides": list(arm.overrides), "per_seed": per_seed,
+            "metrics": arm.key, "overrides": list(overrides), "equal_steps": arm.equal_steps,
+            "per_seed": per_seed,
             "summary": {c: summarise([v[c] for v in per_seed.values()]) for c in table.columns}}
 
 
@@ -250,25 +261,29 @@ def _stage1_models(ctx: Context, table: Table, seeds: Sequence[int]) -> list[dic
 
 def _commit_stage1(ctx: Context, record: dict) -> None:
     """`commit_run` into `COMMITTED_RUNS` of each Stage I model of `record`: those its Stage II
-    rows started from (`stage1_models`) and its own Stage I-2 rows' runs (tables 3, 5, 6: the
-    arms a later run would otherwise train again); says so when there is none."""
-    models = {m["run"]: (m["seed"], "a Stage I model that the table's Stage II rows started from")
-              for m in record["stage1_models"] or ()}
+    rows started from (`stage1_models`), its own Stage I-2 rows' runs and its `Arm.equal_steps`
+    Stage I-1 rows' runs (tables 2, 3, 5, 6: the arms a later run would otherwise train again for
+    ~40 minutes each); says so when there is none."""
+    models = {m["run"]: (m["seed"], "a Stage I model that the table's Stage II rows started "
+                         "from", "stage1_i2") for m in record["stage1_models"] or ()}
     for row in record["rows"]:
-        if row["kind"] == "stage1":
-            models |= {v["run"]: (int(seed), f"the Stage I run of its row '{row['label']}'")
+        phase = ("stage1_i2" if row["kind"] == "stage1" else
+                 "stage1_i1" if row.get("equal_steps") else None)  # the runs of many steps
+        if phase is not None:
+            models |= {v["run"]: (int(seed), f"the Stage I run of its row '{row['label']}'", phase)
                        for seed, v in row["per_seed"].items() if v["run"] not in models}
     if not models:
-        ctx.log(f"[{record['table']}] --commit-stage1: no Stage I-2 model in this table (its rows "
-                "are Stage I-1 runs, minutes to train), nothing committed")
-    for run, (seed, what) in models.items():
+        ctx.log(f"[{record['table']}] --commit-stage1: no long Stage I run in this table (its "
+                "rows are Stage I-1 runs of the preset's length, minutes to train), nothing "
+                "committed")
+    for run, (seed, what, phase) in models.items():
         miou = ctx.evaluation(run)["stage1"]["all"].get("miou")
         made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{record['command']}` "
                    f"(git {record['git']}, with --commit-stage1): {what}; its last checkpoint's "
                    f"weights (without the optimizer state) and its evaluation. mIoU "
                    f"{'n/a' if miou is None else round(miou, 4)} on the evaluation set "
                    f"({record['eval_data']['path']}).\n")
-        path = commit_run(ctx.cache, run, COMMITTED_RUNS, made_by, "stage1_i2")
+        path = commit_run(ctx.cache, run, COMMITTED_RUNS, made_by, phase)
         ctx.log(f"[{record['table']}] committed {os.path.relpath(path, REPO)}")
 
 

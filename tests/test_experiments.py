@@ -218,6 +218,55 @@ def test_runs_are_shared_between_tables(quick_results):
         "count"] == hsv["count"]
 
 
+def test_the_equal_length_control_trains_i1_as_many_steps_as_the_multitask_run(quick_results, quick_cache):
+    """Table 2's `Arm.equal_steps` row: a Stage I-1-only run of its own whose I-1 phase has as
+    many optimizer steps as the multi-task run's I-1 + I-2 (--quick: 2 + 2), said in its row."""
+    record = quick_results["table2_multitask_reconstruction"][0]
+    multi, short, equal = (_row(record, s) for s in ("multi-task (I-1 + I-2)", "single-task (I-1 only)",
+                                                      "single-task (I-1, as many steps)"))
+    assert equal["equal_steps"] and not short["equal_steps"]
+    assert equal["overrides"] == ["stage1.steps_i1=4"]
+
+    def steps(row):
+        with open(os.path.join(quick_cache, "runs", row["per_seed"]["0"]["run"], "metrics.jsonl")) as f:
+            logged = [r for r in map(json.loads, f) if r.get("kind") != "info"]
+        return {phase: max(r["step"] for r in logged if r["stage"] == phase)
+                for phase in {r["stage"] for r in logged}}
+
+    assert steps(multi) == {"stage1_i2": 2}  # its I-1 phase is the shared I-1 run's (2 steps)
+    assert steps(short) == {"stage1_i1": 2}
+    assert steps(equal) == {"stage1_i1": 4}
+    assert len({row["per_seed"]["0"]["run"] for row in (multi, short, equal)}) == 3
+
+
+def test_runs_record_the_package_code_that_trained_them(quick_results, quick_cache, tmp_path):
+    """Every run keeps the package version that trained it (`cache.CODE_FILE`, per seed in
+    results.json); a run continued by other code gets both, a loud warning and a bold line in
+    results.md; a run with checkpoints and no record is 'unknown' before this code."""
+    record, out = quick_results["table2_multitask_reconstruction"]
+    now = {"git": cache.git_commit(), "digest": cache.code_digest()}
+    for row in record["rows"]:
+        assert row["per_seed"]["0"]["code"] == [now]  # this session's runs: the Stage I one too
+    with open(os.path.join(out, "results.md")) as f:
+        assert f"package code that trained the runs read here: git {now['git']}: 3 runs" in f.read()
+
+    logged = []
+    ctx = types.SimpleNamespace(cache=str(tmp_path), log=logged.append)
+    run = tmp_path / "runs" / "stage1-abc"
+    (run / "checkpoints").mkdir(parents=True)
+    cache.Context._record_code(ctx, str(run), "stage1", 0)  # resumes a run of unrecorded code
+    cache.Context._record_code(ctx, str(run), "stage1", 0)  # the same code again: no new entry
+    versions = cache.code_versions(str(run))
+    assert versions == [{"git": "unknown", "digest": "unknown"}, now]
+    assert len(logged) == 1 and "WARNING" in logged[0] and "runs/stage1-abc" in logged[0]
+    record = {"rows": [{"per_seed": {"0": {"run": "stage1-abc", "code": versions},
+                                     "1": {"run": "stage1-def", "code": [now]},
+                                     "2": {"run": "stage1-ghi"}}}]}
+    line = report._runs_code(record)
+    assert f"git {now['git']}: 1 run;" in line and "not recorded" in line
+    assert "**resumed after the package changed" in line and "stage1-abc (git unknown then" in line
+
+
 def test_single_task_models_share_the_i1_weights(quick_results, quick_cache):
     """Table 2/3 protocol: multi-task and single-task Stage I runs start from one I-1 run."""
     from irdepth_jax.config import get_config
@@ -424,6 +473,15 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     runs = {r["per_seed"]["0"]["run"] for r in record["rows"]}
     assert len(runs) == 2 and runs <= set(os.listdir(committed))
     assert model["run"] in runs  # the multi-task arm is the model the depth rows started from
+
+    # table 2 commits its equal-length I-1 run (its I-1 weights), not the preset-length one
+    script = load_script("table2_multitask_reconstruction")
+    record = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out", str(tmp_path / "t2"),
+                                        "--no-progress", "--commit-stage1"])
+    short, equal = (_row(record, s)["per_seed"]["0"]["run"]
+                    for s in ("single-task (I-1 only)", "single-task (I-1, as many steps)"))
+    assert short not in os.listdir(committed)
+    assert os.listdir(committed / equal / "checkpoints" / "stage1_i1") == ["4"]
 
 
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
