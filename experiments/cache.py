@@ -60,8 +60,9 @@ COMMITTED_RUNS = os.path.join(REPO, "experiments", "pretrained")
 """Runs committed with the repository (`commit_run`), each under its cache name
 (``<kind>-<hash>``): the pretrained depth network of `irdepth_experiments.depth_network` (its
 weights, without the optimizer state) and the evaluations of it and of its blank control; the
-protocol's Stage I models (``runner --commit-stage1``: weights and evaluations), with the
-commands that made them. Each took from 40 minutes (a Stage I model) to hours (the depth
+protocol's Stage I models (``runner --commit-stage1``: weights and evaluations) and the long
+Stage I runs of tables 2, 3, 5 and 6's own rows (records and evaluations only: no Stage II starts
+from them), with the commands that made them. Each took from 40 minutes (a Stage I model) to hours (the depth
 network) on a 2-core machine; a cache that lacks one of these runs starts from the committed
 copy (same config, same rendered data, same key) instead of training it."""
 CODE_FILE = "code.json"
@@ -364,11 +365,16 @@ class Context:
         _write_json(path, record)  # last: its presence means the run is complete
         return record
 
-    def _adopt_committed(self, workdir: str) -> None:
+    def _adopt_committed(self, workdir: str, weights: bool = False) -> None:
         """Copies the committed run of `workdir`'s name (`COMMITTED_RUNS`) into the cache when
-        the cache has no such run (whole: copied beside it, then renamed into place)."""
+        the cache has no such run (whole: copied beside it, then renamed into place). A committed
+        run without weights (its records only) is taken only where its evaluation is the one
+        asked for (this cache's evaluation set) and no weights are needed (`weights` False)."""
         committed = os.path.join(COMMITTED_RUNS, os.path.basename(workdir))
         if self.args.no_committed_runs or os.path.exists(workdir) or not os.path.isdir(committed):
+            return
+        if not os.path.isdir(os.path.join(committed, "checkpoints")) and (
+                weights or not os.path.exists(os.path.join(committed, f"eval-{self.eval_key}.json"))):
             return
         self.log(f"using the committed run {os.path.relpath(committed, REPO)} (see its "
                  "MADE_BY.md; --no-committed-runs trains it instead)")
@@ -481,8 +487,12 @@ class Context:
         from irdepth_jax.train.stages import train_stage1
 
         workdir = self.run_dir("stage1", cfg)
-        self._adopt_committed(workdir)  # before its I-1 phase is copied in
+        self._adopt_committed(workdir, weights=True)  # before its I-1 phase is copied in
         i1_ckpt = os.path.join(workdir, "checkpoints", "stage1_i1")
+        if self._trained(workdir) is not None and not os.path.isdir(os.path.dirname(i1_ckpt)):
+            raise SystemExit(f"{workdir} holds a committed run's records without its weights (its "
+                             "evaluation only), and this run needs the weights: delete that "
+                             "folder to train it")
         if self._trained(workdir) is None and not os.path.isdir(i1_ckpt):
             i1_cfg = i1_config(cfg, self.base)
             self._stage1_i1(i1_cfg)

@@ -260,30 +260,35 @@ def _stage1_models(ctx: Context, table: Table, seeds: Sequence[int]) -> list[dic
 
 
 def _commit_stage1(ctx: Context, record: dict) -> None:
-    """`commit_run` into `COMMITTED_RUNS` of each Stage I model of `record`: those its Stage II
-    rows started from (`stage1_models`), its own Stage I-2 rows' runs and its `Arm.equal_steps`
-    Stage I-1 rows' runs (tables 2, 3, 5, 6: the arms a later run would otherwise train again for
-    ~40 minutes each); says so when there is none."""
+    """`commit_run` into `COMMITTED_RUNS` of each long Stage I run of `record`: the models its
+    Stage II rows started from (`stage1_models`: with their weights, which a Stage II needs),
+    and its own Stage I-2 rows' and `Arm.equal_steps` rows' runs (tables 2, 3, 5, 6: the arms
+    a later run would otherwise train again for ~40 minutes each), whose records suffice to
+    write the table (a run committed with its weights before keeps them); says so when there
+    is none."""
     models = {m["run"]: (m["seed"], "a Stage I model that the table's Stage II rows started "
                          "from", "stage1_i2") for m in record["stage1_models"] or ()}
     for row in record["rows"]:
-        phase = ("stage1_i2" if row["kind"] == "stage1" else
-                 "stage1_i1" if row.get("equal_steps") else None)  # the runs of many steps
-        if phase is not None:
-            models |= {v["run"]: (int(seed), f"the Stage I run of its row '{row['label']}'", phase)
+        if row["kind"] == "stage1" or row.get("equal_steps"):
+            models |= {v["run"]: (int(seed), f"the Stage I run of its row '{row['label']}'", None)
                        for seed, v in row["per_seed"].items() if v["run"] not in models}
     if not models:
         ctx.log(f"[{record['table']}] --commit-stage1: no long Stage I run in this table (its "
                 "rows are Stage I-1 runs of the preset's length, minutes to train), nothing "
                 "committed")
-    for run, (seed, what, phase) in models.items():
+    for run, (seed, what, weights) in models.items():
+        committed = os.path.join(COMMITTED_RUNS, run, "checkpoints")
+        if weights is None and os.path.isdir(committed):
+            (weights,) = os.listdir(committed)
         miou = ctx.evaluation(run)["stage1"]["all"].get("miou")
+        kept = ("its last checkpoint's weights (without the optimizer state) and its evaluation"
+                if weights else "its records and evaluation, without weights (no Stage II row "
+                "starts from it; a cache with another evaluation set trains it again)")
         made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{record['command']}` "
-                   f"(git {record['git']}, with --commit-stage1): {what}; its last checkpoint's "
-                   f"weights (without the optimizer state) and its evaluation. mIoU "
+                   f"(git {record['git']}, with --commit-stage1): {what}; {kept}. mIoU "
                    f"{'n/a' if miou is None else round(miou, 4)} on the evaluation set "
                    f"({record['eval_data']['path']}).\n")
-        path = commit_run(ctx.cache, run, COMMITTED_RUNS, made_by, phase)
+        path = commit_run(ctx.cache, run, COMMITTED_RUNS, made_by, weights)
         ctx.log(f"[{record['table']}] committed {os.path.relpath(path, REPO)}")
 
 

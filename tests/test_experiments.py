@@ -473,15 +473,31 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     runs = {r["per_seed"]["0"]["run"] for r in record["rows"]}
     assert len(runs) == 2 and runs <= set(os.listdir(committed))
     assert model["run"] in runs  # the multi-task arm is the model the depth rows started from
+    (single,) = runs - {model["run"]}
+    assert os.listdir(path / "checkpoints" / "stage1_i2") == [step]  # its weights are kept
+    assert not (committed / single / "checkpoints").exists()  # records only: no Stage II uses it
+    assert "without weights" in (committed / single / "MADE_BY.md").read_text()
 
-    # table 2 commits its equal-length I-1 run (its I-1 weights), not the preset-length one
+    # table 2 commits its equal-length I-1 run (records only), not the preset-length one
     script = load_script("table2_multitask_reconstruction")
     record = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out", str(tmp_path / "t2"),
                                         "--no-progress", "--commit-stage1"])
     short, equal = (_row(record, s)["per_seed"]["0"]["run"]
                     for s in ("single-task (I-1 only)", "single-task (I-1, as many steps)"))
-    assert short not in os.listdir(committed)
-    assert os.listdir(committed / equal / "checkpoints" / "stage1_i1") == ["4"]
+    assert short not in os.listdir(committed) and equal in os.listdir(committed)
+    assert not (committed / equal / "checkpoints").exists()
+
+    # a fresh cache with the same evaluation set reads a records-only run's evaluation ...
+    evaluation = ctx.result("stage1_i1", ("stage1.steps_i1=4",), 0)
+    assert evaluation["run"] == equal and not (fresh / "runs" / equal / "checkpoints").exists()
+    # ... but does not take it where the weights are needed, and says so if it holds it
+    single_cfg = ctx.config("stage1", ("stage1.multitask=false",), 0)
+    assert os.path.basename(ctx.run_dir("stage1", single_cfg)) == single
+    ctx._adopt_committed(str(fresh / "runs" / single), weights=True)
+    assert not (fresh / "runs" / single).exists()
+    ctx.result("stage1", ("stage1.multitask=false",), 0)  # its evaluation: taken
+    with pytest.raises(SystemExit, match="without its weights"):
+        ctx._stage1(single_cfg)
 
 
 def test_commit_networks_copies_the_weights_and_records_not_the_optimizer_state(tmp_path, monkeypatch):
