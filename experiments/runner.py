@@ -21,6 +21,7 @@ import argparse
 import dataclasses
 import json
 import os
+import re
 import shlex
 import sys
 import time
@@ -264,8 +265,8 @@ def _commit_stage1(ctx: Context, record: dict) -> None:
     Stage II rows started from (`stage1_models`: with their weights, which a Stage II needs),
     and its own Stage I-2 rows' and `Arm.equal_steps` rows' runs (tables 2, 3, 5, 6: the arms
     a later run would otherwise train again for ~40 minutes each), whose records suffice to
-    write the table (a run committed with its weights before keeps them); says so when there
-    is none."""
+    write the table (a run already committed with its weights, by a depth table, is left as
+    it is); says so when there is none."""
     models = {m["run"]: (m["seed"], "a Stage I model that the table's Stage II rows started "
                          "from", "stage1_i2") for m in record["stage1_models"] or ()}
     for row in record["rows"]:
@@ -276,15 +277,16 @@ def _commit_stage1(ctx: Context, record: dict) -> None:
         ctx.log(f"[{record['table']}] --commit-stage1: no long Stage I run in this table (its "
                 "rows are Stage I-1 runs of the preset's length, minutes to train), nothing "
                 "committed")
+    # the command without --out (where the tables went, often a scratch folder on one machine)
+    command = re.sub(r" --out (?:'[^']*'|\S+)", "", record["command"])
     for run, (seed, what, weights) in models.items():
-        committed = os.path.join(COMMITTED_RUNS, run, "checkpoints")
-        if weights is None and os.path.isdir(committed):
-            (weights,) = os.listdir(committed)
+        if weights is None and os.path.isdir(os.path.join(COMMITTED_RUNS, run, "checkpoints")):
+            continue  # committed with its weights by the table whose Stage II rows start from it
         miou = ctx.evaluation(run)["stage1"]["all"].get("miou")
         kept = ("its last checkpoint's weights (without the optimizer state) and its evaluation"
                 if weights else "its records and evaluation, without weights (no Stage II row "
                 "starts from it; a cache with another evaluation set trains it again)")
-        made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{record['command']}` "
+        made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{command}` "
                    f"(git {record['git']}, with --commit-stage1): {what}; {kept}. mIoU "
                    f"{'n/a' if miou is None else round(miou, 4)} on the evaluation set "
                    f"({record['eval_data']['path']}).\n")

@@ -451,6 +451,7 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     assert "model" in os.listdir(path / "checkpoints" / "stage1_i2" / step)
     assert {"MADE_BY.md", "config.json", "trained.json"} <= set(os.listdir(path))
     assert "seed 0" in (path / "MADE_BY.md").read_text() and "--commit-stage1" in (path / "MADE_BY.md").read_text()
+    assert "--out" not in (path / "MADE_BY.md").read_text()  # a scratch folder of one machine
     for name in os.listdir(path):
         if name.endswith((".json", ".md")):
             assert quick_cache not in (path / name).read_text(), name
@@ -474,7 +475,8 @@ def test_committed_stage1_models_are_taken_by_a_fresh_cache(quick_results, quick
     assert len(runs) == 2 and runs <= set(os.listdir(committed))
     assert model["run"] in runs  # the multi-task arm is the model the depth rows started from
     (single,) = runs - {model["run"]}
-    assert os.listdir(path / "checkpoints" / "stage1_i2") == [step]  # its weights are kept
+    assert os.listdir(path / "checkpoints" / "stage1_i2") == [step]  # left as table 7 committed it
+    assert "table7_sky_loss" in (path / "MADE_BY.md").read_text()
     assert not (committed / single / "checkpoints").exists()  # records only: no Stage II uses it
     assert "without weights" in (committed / single / "MADE_BY.md").read_text()
 
