@@ -91,11 +91,14 @@ def git_commit() -> str:
 
 @functools.lru_cache(maxsize=1)
 def code_digest() -> str:
-    """sha1 (12 hex digits) of the package's Python sources (`irdepth_jax/**/*.py`, paths and
-    contents): the code that renders, trains and evaluates a run, whether committed or not."""
+    """sha1 (12 hex digits) of the package's sources (`irdepth_jax/**/*.py` and the native CPU
+    kernel's `*.cc`, paths and contents): the code that renders, trains and evaluates a run,
+    whether committed or not."""
     digest = hashlib.sha1()
     package = os.path.join(REPO, "irdepth_jax")
-    for path in sorted(glob.glob(os.path.join(package, "**", "*.py"), recursive=True)):
+    sources = [path for pattern in ("*.py", "*.cc")
+               for path in glob.glob(os.path.join(package, "**", pattern), recursive=True)]
+    for path in sorted(sources):
         digest.update(os.path.relpath(path, package).encode() + b"\0")
         with open(path, "rb") as f:
             digest.update(f.read() + b"\0")
