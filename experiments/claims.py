@@ -98,8 +98,11 @@ def _claims() -> tuple[Claim, ...]:
                                     ("the camera chain", "camera-like (IRCBA stand-in)",
                                      "IRCBA (camera)"))
           for c in ("d1", "abs_rel")]
-    t2 = [Claim("table2_multitask_reconstruction", f"multi-task beats single-task ({COLUMN_NAMES[c]})",
-                ("multi-task (I-1 + I-2)", "all"), ("single-task (I-1 only)", "all"), c,
+    # against the single-task model trained as many steps: the preset-length one (78 against
+    # 2,578 on the protocol) confounds the second task with the training length
+    t2 = [Claim("table2_multitask_reconstruction",
+                f"multi-task beats single-task at equal steps ({COLUMN_NAMES[c]})",
+                ("multi-task (I-1 + I-2)", "all"), ("single-task (I-1, as many steps)", "all"), c,
                 ("multi-task", "single-task")) for c in RECON_COLUMNS]
     t3 = [Claim("table3_multitask_segmentation", "multi-task beats single-task (mIoU)",
                 ("multi-task", "all"), ("single-task", "all"), "miou", ("multi-task", "single-task"))]

@@ -128,21 +128,36 @@ def markdown(table: Table, record: dict) -> str:
 
 def _runs_code(record: dict) -> str:
     """The provenance line on the package code that trained the runs a table reads (each run's
-    `cache.CODE_FILE` record, per seed in results.json as 'code')."""
+    `cache.CODE_FILE` record, per seed in results.json as 'code'), counted by code digest: the
+    same code under several commits is one version, one commit with different uncommitted
+    changes two."""
     runs = {v["run"]: v.get("code") for row in record["rows"] for v in row["per_seed"].values()}
+    commits: dict[str, list[str]] = {}
     counts: dict[str, int] = {}
     mixed = []
     for run, versions in runs.items():
         if versions is not None and len(versions) > 1:
-            mixed.append(f"{run} (git {' then '.join(v['git'] for v in versions)})")
+            mixed.append(f"{run} ({', then '.join(_code_version(v) for v in versions)})")
             continue
-        key = f"git {versions[0]['git']}" if versions else "not recorded (trained before runs kept it)"
+        if not versions:
+            key = "not recorded (trained before runs kept it)"
+        else:
+            key = f"code {versions[0]['digest']}"
+            commits.setdefault(key, [])
+            if versions[0]["git"] not in commits[key]:
+                commits[key].append(versions[0]["git"])
         counts[key] = counts.get(key, 0) + 1
-    parts = [f"{key}: {n} run{'s' * (n > 1)}" for key, n in counts.items()]
+    parts = [f"{key}{' (git ' + ', '.join(commits[key]) + ')' if key in commits else ''}: "
+             f"{n} run{'s' * (n > 1)}" for key, n in counts.items()]
     if mixed:
         parts.append("**resumed after the package changed, so neither version's (a fresh run of "
                      f"the command may differ): {', '.join(mixed)}**")
     return "- package code that trained the runs read here: " + "; ".join(parts)
+
+
+def _code_version(version: dict) -> str:
+    """'code <digest> (git <commit>)' of one `cache.CODE_FILE` entry."""
+    return f"code {version['digest']} (git {version['git']})"
 
 
 def figure(table: Table, record: dict, path: str) -> None:

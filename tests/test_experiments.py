@@ -248,7 +248,8 @@ def test_runs_record_the_package_code_that_trained_them(quick_results, quick_cac
     for row in record["rows"]:
         assert row["per_seed"]["0"]["code"] == [now]  # this session's runs: the Stage I one too
     with open(os.path.join(out, "results.md")) as f:
-        assert f"package code that trained the runs read here: git {now['git']}: 3 runs" in f.read()
+        assert ("package code that trained the runs read here: "
+                f"code {now['digest']} (git {now['git']}): 3 runs") in f.read()
 
     logged = []
     ctx = types.SimpleNamespace(cache=str(tmp_path), log=logged.append)
@@ -259,12 +260,15 @@ def test_runs_record_the_package_code_that_trained_them(quick_results, quick_cac
     versions = cache.code_versions(str(run))
     assert versions == [{"git": "unknown", "digest": "unknown"}, now]
     assert len(logged) == 1 and "WARNING" in logged[0] and "runs/stage1-abc" in logged[0]
+    same_code = {"git": "0000000", "digest": now["digest"]}  # an earlier commit, the same package
     record = {"rows": [{"per_seed": {"0": {"run": "stage1-abc", "code": versions},
                                      "1": {"run": "stage1-def", "code": [now]},
-                                     "2": {"run": "stage1-ghi"}}}]}
+                                     "2": {"run": "stage1-ghi"}}},
+                       {"per_seed": {"0": {"run": "stage1-jkl", "code": [same_code]}}}]}
     line = report._runs_code(record)
-    assert f"git {now['git']}: 1 run;" in line and "not recorded" in line
-    assert "**resumed after the package changed" in line and "stage1-abc (git unknown then" in line
+    assert f"code {now['digest']} (git {now['git']}, 0000000): 2 runs;" in line and "not recorded" in line
+    assert "**resumed after the package changed" in line
+    assert f"stage1-abc (code unknown (git unknown), then code {now['digest']} (git {now['git']}))" in line
 
 
 def test_single_task_models_share_the_i1_weights(quick_results, quick_cache):
