@@ -29,7 +29,7 @@ import json
 import os
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 
@@ -42,12 +42,13 @@ MODES = ("stored", "recomputed")
 LOADER_SEED = 1234
 
 
-def stage1_runs(results: str = RESULTS) -> dict[str, dict]:
-    """{run name: {'rows': ['<table>: <row>', ...], 'seed'}} of every Stage I run the committed
-    tables read, and the training and evaluation data (paths relative to the cache) they share."""
+def stage1_runs(results: str = RESULTS, tables: Sequence[str] = TABLES) -> dict:
+    """{'runs': {run name: {'rows': ['<table>: <row>', ...], 'seed'}}, 'train_data', 'eval_data'}:
+    every Stage I run the `tables` in `results` read, and the training and evaluation data (paths
+    relative to the cache) they share."""
     runs: dict[str, dict] = {}
     data = set()
-    for table in TABLES:
+    for table in tables:
         with open(os.path.join(results, table, "results.json")) as f:
             record = json.load(f)
         data.add((record["data"]["path"], record["eval_data"]["path"]))
@@ -59,6 +60,34 @@ def stage1_runs(results: str = RESULTS) -> dict[str, dict]:
         raise SystemExit(f"the tables were made on different data: {sorted(data)}")
     (train_data, eval_data), = data
     return {"runs": runs, "train_data": train_data, "eval_data": eval_data}
+
+
+def recomputed_statistics(cfg, variables: dict, batches: Iterable[dict]) -> tuple[dict, int]:
+    """(the MTSA-UNet's 'batch_stats' recomputed exactly, frames used): each BatchNorm's mean and
+    variance as the mean over `batches` (dicts with 'raw14' (B, H, W) and optionally 'brightness'
+    (B,), as a training loader yields them) of that batch's statistics, from train-mode passes at
+    momentum 0 (the running average is then the batch's own); the weights are used unchanged."""
+    import jax
+    import jax.numpy as jnp
+
+    from irdepth_jax.models.pipeline import unet_input
+    from irdepth_jax.models.unet import MTSAUNet
+
+    exact = MTSAUNet(dataclasses.replace(cfg.unet, bn_momentum=0.0))
+
+    @jax.jit
+    def batch_statistics(raw, brightness):
+        _, updated = exact.apply(variables, unet_input(raw, cfg, brightness), train=True,
+                                 mutable=["batch_stats"])
+        return updated["batch_stats"]
+
+    total, count, frames = None, 0, 0
+    for batch in batches:
+        brightness = batch.get("brightness")
+        stats = batch_statistics(jnp.asarray(batch["raw14"]), None if brightness is None else jnp.asarray(brightness))
+        total = stats if total is None else jax.tree.map(jnp.add, total, stats)
+        count, frames = count + 1, frames + len(batch["raw14"])
+    return jax.tree.map(lambda x: x / count, total), frames
 
 
 def measure(run_dir: str, train_data: str, eval_data: str, frames: int, train_frames: int) -> dict:
@@ -78,32 +107,20 @@ def measure(run_dir: str, train_data: str, eval_data: str, frames: int, train_fr
         cfg = from_dict(json.load(f))
     variables, _ = load_stage1(run_dir, cfg)
     model = MTSAUNet(cfg.unet)
-    exact = MTSAUNet(dataclasses.replace(cfg.unet, bn_momentum=0.0))  # running average = this batch's
 
     @jax.jit
     def forward(v, raw):
         out = model.apply(v, unet_input(raw, cfg), train=False)
         return out["recon"][..., 0], jnp.argmax(out["seg_logits"], axis=-1)
 
-    @jax.jit
-    def batch_statistics(v, raw, brightness):
-        _, updated = exact.apply(v, unet_input(raw, cfg, brightness), train=True, mutable=["batch_stats"])
-        return updated["batch_stats"]
-
     source = DataSource(train_data, raw_bits=cfg.data.raw_bits)
     train_cfg = resolve_raw_bits(cfg, source)
     dataset, indices = phase_frames(source, "stage1_i1", train_cfg)
     batch_size = cfg.stage1.batch_size
-    total, batches = None, 0
-    for batch in make_loader(dataset, indices, batch_size, seed=LOADER_SEED, train=True, cfg=train_cfg):
-        if batches * batch_size >= train_frames:
-            break
-        brightness = batch.get("brightness")
-        stats = batch_statistics(variables, jnp.asarray(batch["raw14"]),
-                                 None if brightness is None else jnp.asarray(brightness))
-        total = stats if total is None else jax.tree.map(jnp.add, total, stats)
-        batches += 1
-    recomputed = {"params": variables["params"], "batch_stats": jax.tree.map(lambda x: x / batches, total)}
+    loader = make_loader(dataset, indices, batch_size, seed=LOADER_SEED, train=True, cfg=train_cfg)
+    statistics, used = recomputed_statistics(
+        cfg, variables, (batch for _, batch in zip(range(-(-train_frames // batch_size)), loader)))
+    recomputed = {"params": variables["params"], "batch_stats": statistics}
 
     evaluation = DataSource(eval_data, raw_bits=cfg.data.raw_bits)
     eval_set, eval_indices = evaluation.frames("test")
@@ -111,7 +128,7 @@ def measure(run_dir: str, train_data: str, eval_data: str, frames: int, train_fr
     raw = np.stack([s["raw14"] for s in samples])
     target = np.stack([s["ir8"] for s in samples]).astype(np.float32)[..., None] / 255.0
     labels = np.stack([s["seg"] for s in samples])
-    out: dict = {"train_frames": batches * batch_size, "frames": len(samples)}
+    out: dict = {"train_frames": used, "frames": len(samples)}
     per_frame = {}
     for mode, v in zip(MODES, (variables, recomputed)):
         p, s, cm = [], [], []
