@@ -92,26 +92,17 @@ def recomputed_statistics(cfg, variables: dict, batches: Iterable[dict]) -> tupl
 
 def measure(run_dir: str, train_data: str, eval_data: str, frames: int, train_frames: int) -> dict:
     """{'stored': {psnr, ssim, miou}, 'recomputed': {...}, 'check': {...}} of the Stage I model in
-    `run_dir` on the first `frames` test frames of `eval_data` (module docstring)."""
-    import jax
-    import jax.numpy as jnp
-
+    `run_dir` on the first `frames` test frames of `eval_data` (module docstring), both measured
+    by `irdepth_jax.evaluators.evaluate_stage1` as the tables are."""
     from irdepth_jax.config import from_dict
     from irdepth_jax.data.source import DataSource, make_loader, phase_frames, resolve_raw_bits
-    from irdepth_jax.image_metrics import confusion_matrix, mean_iou, psnr, ssim
-    from irdepth_jax.models.pipeline import unet_input
-    from irdepth_jax.models.unet import MTSAUNet
+    from irdepth_jax.evaluators import evaluate_stage1
     from irdepth_jax.runs.variables import load_stage1
+    from irdepth_jax.train.parallel import DataParallel
 
     with open(os.path.join(run_dir, "config.json")) as f:
         cfg = from_dict(json.load(f))
     variables, _ = load_stage1(run_dir, cfg)
-    model = MTSAUNet(cfg.unet)
-
-    @jax.jit
-    def forward(v, raw):
-        out = model.apply(v, unet_input(raw, cfg), train=False)
-        return out["recon"][..., 0], jnp.argmax(out["seg_logits"], axis=-1)
 
     source = DataSource(train_data, raw_bits=cfg.data.raw_bits)
     train_cfg = resolve_raw_bits(cfg, source)
@@ -124,28 +115,19 @@ def measure(run_dir: str, train_data: str, eval_data: str, frames: int, train_fr
 
     evaluation = DataSource(eval_data, raw_bits=cfg.data.raw_bits)
     eval_set, eval_indices = evaluation.frames("test")
-    samples = [eval_set[int(i)] for i in list(eval_indices)[:frames]]
-    raw = np.stack([s["raw14"] for s in samples])
-    target = np.stack([s["ir8"] for s in samples]).astype(np.float32)[..., None] / 255.0
-    labels = np.stack([s["seg"] for s in samples])
-    out: dict = {"train_frames": used, "frames": len(samples)}
+    seg_set, seg_indices = evaluation.seg_frames("test")
+    eval_indices, seg_indices = np.asarray(eval_indices)[:frames], np.asarray(seg_indices)[:frames]
+    out: dict = {"train_frames": used, "frames": len(eval_indices)}
     per_frame = {}
     for mode, v in zip(MODES, (variables, recomputed)):
-        p, s, cm = [], [], []
-        for start in range(0, len(samples), batch_size):
-            recon, seg = forward(v, jnp.asarray(raw[start:start + batch_size]))
-            recon = np.asarray(recon, np.float32)[..., None]
-            p.append(np.asarray(psnr(recon, target[start:start + batch_size])))
-            s.append(np.asarray(ssim(recon, target[start:start + batch_size])))
-            cm += [np.asarray(confusion_matrix(k, l, cfg.unet.num_classes), np.int64)
-                   for k, l in zip(np.asarray(seg), labels[start:start + batch_size])]
-        per_frame[mode] = np.concatenate(p).astype(np.float64)
-        out[mode] = {"psnr": float(per_frame[mode].mean()), "ssim": float(np.concatenate(s).mean()),
-                     "miou": float(mean_iou(np.sum(cm, axis=0)))}
+        metrics, per_frame[mode] = evaluate_stage1(cfg, v, eval_set, eval_indices, DataParallel("single"),
+                                                   seg_frames=(seg_set, seg_indices), per_frame=True)
+        out[mode] = {k: float(metrics["all"][k]) for k in ("psnr", "ssim", "miou")}
     stored = sorted(f for f in os.listdir(run_dir) if f.startswith("eval-") and f.endswith(".npz"))
     if stored:
-        reference = np.load(os.path.join(run_dir, stored[0]))["psnr"][:len(samples)]
-        out["check"] = {"max_abs_psnr_vs_its_evaluation": float(np.max(np.abs(reference - per_frame["stored"])))}
+        reference = np.load(os.path.join(run_dir, stored[0]))["psnr"][:len(eval_indices)]
+        out["check"] = {"max_abs_psnr_vs_its_evaluation":
+                        float(np.max(np.abs(reference - per_frame["stored"]["psnr"])))}
     return out
 
 
@@ -191,6 +173,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--train-frames", type=int, default=200, help="training frames for the statistics")
     parser.add_argument("--out", default=os.path.join(RESULTS, "bn_statistics"), help="output path, no suffix")
     args = parser.parse_args(argv)
+    if args.frames < 1 or args.train_frames < 1:
+        parser.error("--frames and --train-frames must be at least 1")
     found = stage1_runs()
     missing = [n for n in found["runs"] if not os.path.isdir(os.path.join(args.cache, "runs", n, "checkpoints"))]
     if missing:
