@@ -216,6 +216,15 @@ class Context:
             {"data": _fingerprint(self.eval_info["path"]), "split": EVAL_SPLIT,
              "protocol": dataclasses.asdict(self.protocol), "metrics": EVAL_METRICS_VERSION},
             sort_keys=True).encode()).hexdigest()[:12]
+        self.stage1_eval_key = hashlib.sha1(
+            f"{self.eval_key} {STAGE1_MODEL_VERSION}".encode()).hexdigest()[:12]
+
+    def eval_path(self, run: str, suffix: str = ".json") -> str:
+        """The file of run `run`'s evaluation on this evaluation set (`suffix` '.json': the
+        record, '.npz': its per-frame metrics); a Stage I run's is keyed by
+        `STAGE1_MODEL_VERSION` too."""
+        key = self.stage1_eval_key if run.startswith("stage1") else self.eval_key
+        return os.path.join(self.cache, "runs", run, f"eval-{key}{suffix}")
 
     # ---------------------------------------------------------------- data
     def _dataset(self) -> tuple[str, dict]:
@@ -332,7 +341,10 @@ class Context:
         if checkpoint and os.path.isabs(checkpoint) and checkpoint.startswith(self.cache + os.sep):
             config["depth"]["checkpoint"] = os.path.relpath(checkpoint, self.cache)  # movable cache
         fingerprint = self.data_fingerprint if data is None else _fingerprint(data)
-        blob = json.dumps({"kind": kind, "config": config, "data": fingerprint}, sort_keys=True)
+        key = {"kind": kind, "config": config, "data": fingerprint}
+        if kind == "stage2":  # trained on a Stage I model's images and sky mask
+            key["stage1_model"] = STAGE1_MODEL_VERSION
+        blob = json.dumps(key, sort_keys=True)
         return os.path.join(self.cache, "runs", f"{kind}-{hashlib.sha1(blob.encode()).hexdigest()[:12]}")
 
     # ---------------------------------------------------------------- runs
@@ -343,7 +355,7 @@ class Context:
         cfg = self.config(kind, overrides, seed)
         workdir = self.run_dir(kind, cfg, self.pretraining_data if kind == "depth" else None)
         self._adopt_committed(workdir)
-        path = os.path.join(workdir, f"eval-{self.eval_key}.json")
+        path = self.eval_path(os.path.basename(workdir))
         if os.path.exists(path):
             return self.evaluation(os.path.basename(workdir))
         train = {"stage1_i1": self._stage1_i1, "stage1": self._stage1, "stage2": self._stage2,
@@ -377,7 +389,8 @@ class Context:
         if self.args.no_committed_runs or os.path.exists(workdir) or not os.path.isdir(committed):
             return
         if not os.path.isdir(os.path.join(committed, "checkpoints")) and (
-                weights or not os.path.exists(os.path.join(committed, f"eval-{self.eval_key}.json"))):
+                weights or not os.path.exists(os.path.join(
+                    committed, os.path.basename(self.eval_path(os.path.basename(workdir)))))):
             return
         self.log(f"using the committed run {os.path.relpath(committed, REPO)} (see its "
                  "MADE_BY.md; --no-committed-runs trains it instead)")
@@ -397,13 +410,12 @@ class Context:
 
     def evaluation(self, run: str) -> dict:
         """The evaluation record `result` saved for the cached run named `run`."""
-        with open(os.path.join(self.cache, "runs", run, f"eval-{self.eval_key}.json")) as f:
+        with open(self.eval_path(run)) as f:
             return json.load(f)
 
     def frames(self, record: dict) -> dict[str, np.ndarray]:
         """The per-frame metrics saved beside an evaluation record of `result`."""
-        path = os.path.join(self.cache, "runs", record["run"], f"eval-{self.eval_key}.npz")
-        with np.load(path) as f:
+        with np.load(self.eval_path(record["run"], ".npz")) as f:
             return {k: f[k] for k in f.files}
 
     def _options(self, workdir: str, **kw):
@@ -427,7 +439,7 @@ class Context:
         from irdepth_jax.train.workdir_lock import WorkdirLocked, acquire, release
 
         done = self._trained(opts.workdir)
-        if done is not None:
+        if done is not None and not _unfinalised(opts.workdir):
             return done
         os.makedirs(opts.workdir, exist_ok=True)
         try:  # the workdir lock of `irdepth train`: one runner trains a cached run
@@ -437,12 +449,21 @@ class Context:
                              "command when it has finished)") from None
         try:
             done = self._trained(opts.workdir)  # finished while this runner waited for the lock
-            if done is not None:
+            unfinalised = _unfinalised(opts.workdir)
+            if done is not None and not unfinalised:
                 return done
-            self.log(f"[{kind} seed {cfg.seed}] training in "
-                     f"{os.path.relpath(opts.workdir, self.cache)}")
+            if unfinalised and not os.path.isdir(os.path.join(opts.workdir, "checkpoints", unfinalised[0])):
+                raise SystemExit(f"{opts.workdir}: a copy of a committed run made before Stage I "
+                                 "models had exact BatchNorm statistics, without the weights to "
+                                 "compute them; delete it to take the committed run again")
+            self.log(f"[{kind} seed {cfg.seed}] " + (
+                "computing the exact BatchNorm statistics of the finished phases "
+                f"{', '.join(unfinalised)} in " if done is not None else "training in ")
+                + os.path.relpath(opts.workdir, self.cache))
             self._record_code(opts.workdir, kind, cfg.seed)
             started = time.time()
+            if done is not None:  # finished: only its last checkpoints are rewritten
+                opts = dataclasses.replace(opts, resume=True)
             try:
                 fn(cfg, self.source if source is None else source, opts)
             except Interrupted as err:
@@ -450,6 +471,8 @@ class Context:
                 raise SystemExit(130) from None
             except RunError as err:
                 raise SystemExit(str(err)) from None
+            if done is not None:
+                return done
             wall_s = round(time.time() - started, 1)
             _write_json(os.path.join(opts.workdir, "trained.json"), {"wall_s": wall_s})
         finally:
@@ -543,6 +566,31 @@ class Context:
 
 EVAL_METRICS_VERSION = 2
 """Part of the evaluation cache key: 2 added the sky metrics, so older evaluations are redone."""
+
+STAGE1_MODEL_VERSION = 2
+"""Part of the key of Stage I evaluations and of Stage II runs: 2 is a Stage I model whose
+phases end with exact BatchNorm statistics (`irdepth_jax.train.batch_statistics`). A finished
+Stage I run of version 1 (running averages) gets them when it is next used (`_unfinalised`),
+and is evaluated again; the Stage II runs on it are trained again."""
+
+
+def _unfinalised(workdir: str) -> list[str]:
+    """The Stage I phases of the run in `workdir` whose last checkpoint holds running-average
+    BatchNorm statistics (finished before `STAGE1_MODEL_VERSION` 2), the I-1 phase first;
+    a run that is not a Stage I run: none."""
+    from irdepth_jax.runs.checkpoint import has_checkpoint, read_meta
+    from irdepth_jax.train.phase import FINALIZED
+
+    if not os.path.basename(workdir).startswith("stage1"):
+        return []
+    phases = []
+    for phase in ("stage1_i1", "stage1_i2"):
+        directory = os.path.join(workdir, "checkpoints", phase)
+        if has_checkpoint(directory) and FINALIZED not in read_meta(directory):
+            phases.append(phase)
+    if phases == ["stage1_i2"] and not has_checkpoint(os.path.join(workdir, "checkpoints", "stage1_i1")):
+        phases.insert(0, "stage1_i1")  # a committed copy: its I-2 weights only
+    return phases
 
 
 def _fingerprint(path: str) -> str:

@@ -287,44 +287,36 @@ def test_single_task_models_share_the_i1_weights(quick_results, quick_cache):
     assert all(jax.tree.leaves(same))
 
 
-def test_bn_statistics_recomputes_each_batchnorm_exactly(quick_results, quick_cache):
-    """experiments/bn_statistics.py: with the stored statistics it reproduces the run's own
-    evaluation frame by frame; statistics recomputed from one batch make eval mode compute what
-    train mode (that batch's own statistics) computes on it, and two batches give their mean."""
-    from irdepth_experiments import bn_statistics
+def test_a_stage1_run_finished_with_running_averages_gets_exact_statistics(quick_results, quick_cache, tmp_path):
+    """A cached Stage I run whose last checkpoints hold running-average BatchNorm statistics (as
+    every run finished before `STAGE1_MODEL_VERSION` 2) gets the exact ones when a table next
+    uses it, with no step trained again, and is evaluated with them: the same metrics as the
+    run finished with them (they are deterministic), its training time kept."""
+    from trained_runs import unfinalise
+
+    from irdepth_experiments.cache import _unfinalised
     from irdepth_jax.config import from_dict
-    from irdepth_jax.data.source import DataSource
-    from irdepth_jax.models.pipeline import unet_input
-    from irdepth_jax.models.unet import MTSAUNet
-    from irdepth_jax.runs.variables import load_stage1
 
-    record = quick_results["table2_multitask_reconstruction"][0]
-    found = bn_statistics.stage1_runs(str(quick_results.out_root), ["table2_multitask_reconstruction"])
+    name = "table2_multitask_reconstruction"
+    record = quick_results[name][0]
     run = _row(record, "multi-task (I-1 + I-2)")["per_seed"]["0"]["run"]
-    assert found["runs"][run]["rows"] == ["table2_multitask_reconstruction: multi-task (I-1 + I-2)"]
     run_dir = os.path.join(quick_cache, "runs", run)
-    result = bn_statistics.measure(run_dir, os.path.join(quick_cache, found["train_data"]),
-                                   os.path.join(quick_cache, found["eval_data"]), frames=4, train_frames=4)
-    assert result["check"]["max_abs_psnr_vs_its_evaluation"] < 1e-4 and result["frames"] == 4
-    assert all(finite(result[m][k]) for m in bn_statistics.MODES for k in ("psnr", "ssim", "miou"))
-
     with open(os.path.join(run_dir, "config.json")) as f:
         cfg = from_dict(json.load(f))
-    variables, _ = load_stage1(run_dir, cfg)
-    dataset, indices = DataSource(os.path.join(quick_cache, found["eval_data"]),
-                                  raw_bits=cfg.data.raw_bits).frames("test")
-    raw = np.stack([dataset[int(i)]["raw14"] for i in list(indices)[:4]])
-    stats, used = bn_statistics.recomputed_statistics(cfg, variables, [{"raw14": raw}])
-    assert used == 4
-    model = MTSAUNet(cfg.unet)
-    train_mode, _ = model.apply(variables, unet_input(raw, cfg), train=True, mutable=["batch_stats"])
-    eval_mode = model.apply({"params": variables["params"], "batch_stats": stats}, unet_input(raw, cfg), train=False)
-    np.testing.assert_allclose(eval_mode["recon"], train_mode["recon"], atol=2e-5)
-    halves, _ = bn_statistics.recomputed_statistics(cfg, variables, [{"raw14": raw[:2]}, {"raw14": raw[2:]}])
-    first, second = (bn_statistics.recomputed_statistics(cfg, variables, [{"raw14": r}])[0] for r in (raw[:2], raw[2:]))
-    mean = jax.tree.map(lambda a, b: (a + b) / 2, first, second)
-    assert all(jax.tree.leaves(jax.tree.map(lambda a, b: np.allclose(a, b, atol=1e-6), halves, mean)))
-    assert not all(jax.tree.leaves(jax.tree.map(lambda a, b: np.allclose(a, b), stats, variables["batch_stats"])))
+    unfinalise(run_dir, cfg, ["stage1_i2"])
+    assert _unfinalised(run_dir) == ["stage1_i2"]
+    for path in glob.glob(os.path.join(run_dir, "eval-*")):
+        os.remove(path)
+    with open(os.path.join(run_dir, "metrics.jsonl")) as f:
+        steps_before = [line for line in f if '"loss"' in line]
+    script = load_script(name)
+    again = script.main(script.TABLE, ["--quick", "--cache", quick_cache, "--out", str(tmp_path), "--no-progress"])
+    assert _unfinalised(run_dir) == []
+    with open(os.path.join(run_dir, "metrics.jsonl")) as f:
+        assert [line for line in f if '"loss"' in line] == steps_before
+    old, new = (_row(r, "multi-task (I-1 + I-2)")["per_seed"]["0"] for r in (record, again))
+    for col in record["columns"]:
+        assert new[col] == pytest.approx(old[col], rel=1e-5), col
 
 
 def test_rerun_is_cached_and_an_unfinished_run_resumes(quick_results, quick_cache, tmp_path):

@@ -62,6 +62,30 @@ def train(stage: str, data, work, *extra) -> None:
     assert cli.main([str(a) for a in argv]) == 0, argv
 
 
+def unfinalise(run, cfg, phases) -> None:
+    """Rewrites the last checkpoint of each Stage I phase in `phases` of the run `run` (a
+    private copy) as runs finished before `train.batch_statistics` left it: fresh-init BatchNorm
+    statistics in place of the exact ones, and no `train.phase.FINALIZED` record."""
+    import jax
+
+    from irdepth_jax.runs.checkpoint import Checkpointer
+    from irdepth_jax.runs.variables import init_unet
+    from irdepth_jax.train.phase import FINALIZED
+    from irdepth_jax.train.state import TrainState, stage1_optimizer
+
+    stale = init_unet(cfg)["batch_stats"]
+    for phase in phases:
+        ckpt = Checkpointer(os.path.join(run, "checkpoints", phase), phase, max_to_keep=None)
+        try:
+            tx, lr_fns = stage1_optimizer(cfg, phase)
+            template = TrainState.create(init_unet(cfg)["params"], stale, tx, jax.random.PRNGKey(0), lr_fns)
+            state, meta = ckpt.restore(template)
+            ckpt.replace(ckpt.latest_step(), state.replace(batch_stats=stale),
+                         {k: v for k, v in meta.items() if k != FINALIZED})
+        finally:
+            ckpt.close()
+
+
 def copy_run(run, dest):
     """A private copy of a shared run (or dataset) at `dest`, to change at will."""
     shutil.copytree(run, dest, symlinks=True)

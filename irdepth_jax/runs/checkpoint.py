@@ -91,6 +91,8 @@ class Checkpointer:
         handlers = {"model": ocp.StandardCheckpointHandler(),
                     "train": ocp.StandardCheckpointHandler(),
                     "frozen": ocp.StandardCheckpointHandler(), "meta": ocp.JsonCheckpointHandler()}
+        if not read_only:
+            _recover_replaced(self.directory)
         absl_log = logging.getLogger("absl")
         if read_only:
             absl_log.addFilter(_not_read_only_notice)
@@ -131,6 +133,20 @@ class Checkpointer:
         self.manager.wait_until_finished()  # as orbax's save would; the last step is final
         self._check_room(sum(getattr(x, "nbytes", 0) for x in jax.tree.leaves((items, frozen))))
         return self.manager.save(int(step), force=force, args=ocp.args.Composite(**args))
+
+    def replace(self, step: int, state: Any, meta: Mapping[str, Any], frozen: Any = None) -> None:
+        """Rewrites the finalised step `step` with `state` and `meta` (a finished phase's last
+        step, finalised after the fact: `train.phase.Phase.finalize`). The old step folder is
+        moved aside (``<step>.replaced``) and deleted once the new one is final; a process killed
+        in between leaves it aside, and the next Checkpointer on the directory puts it back
+        (`_recover_replaced`), so the step is never lost."""
+        self.manager.wait_until_finished()
+        folder = os.path.join(self.directory, str(int(step)))
+        os.rename(folder, folder + REPLACED)
+        self.manager.reload()
+        self.save(step, state, meta, frozen=frozen, force=True)
+        self.manager.wait_until_finished()
+        shutil.rmtree(folder + REPLACED)
 
     def _check_room(self, array_bytes: int) -> None:
         """OSError(ENOSPC) when the disk's free space is below what the next checkpoint needs
@@ -242,6 +258,24 @@ class Checkpointer:
         elif step not in self.manager.all_steps():
             raise CheckpointError(f"no checkpoint step {step} in {self.directory}")
         return step
+
+
+REPLACED = ".replaced"
+"""Suffix of a step folder `Checkpointer.replace` has moved aside (not a step orbax lists)."""
+
+
+def _recover_replaced(directory: str) -> None:
+    """Finishes a `Checkpointer.replace` a killed process left: each ``<step>.replaced`` folder
+    is deleted where ``<step>`` was written, else moved back to ``<step>``."""
+    if not os.path.isdir(directory):
+        return
+    for name in os.listdir(directory):
+        if name.endswith(REPLACED) and name[:-len(REPLACED)].isdigit():
+            aside, folder = os.path.join(directory, name), os.path.join(directory, name[:-len(REPLACED)])
+            if os.path.isdir(folder):
+                shutil.rmtree(aside)
+            else:
+                os.rename(aside, folder)
 
 
 @contextlib.contextmanager

@@ -32,6 +32,10 @@ from irdepth_jax.train.runlog import RunLog
 from irdepth_jax.train.state import TrainState
 from irdepth_jax.train.steps import make_train_step
 
+FINALIZED = "batch_stats"
+"""The checkpoint meta field of a phase's last step that holds `Phase.finalize`'s record (absent
+from a run finished before its phase had one: it is finalised when the run is resumed)."""
+
 
 @dataclasses.dataclass
 class RunOptions:
@@ -87,6 +91,10 @@ class Phase:
       step_offset: steps of earlier phases of the same stage (for `RunOptions.stop_at`).
       meta: extra JSON fields stored in every checkpoint of the phase (e.g. where its labels
         came from, and ``started_from``: the step of the phase it continues).
+      finalize: ``fn({'params', 'batch_stats'} host arrays) -> (batch_stats, record)`` applied
+        to the state after the last step, before its checkpoint (Stage I: exact BatchNorm
+        statistics, `train.batch_statistics`); `record` goes into that checkpoint's meta under
+        `FINALIZED`. None: the last state is saved as trained.
     """
 
     name: str
@@ -100,6 +108,7 @@ class Phase:
     evaluate: Callable[[TrainState], dict] | None = None
     step_offset: int = 0
     meta: dict = dataclasses.field(default_factory=dict)
+    finalize: Callable[[dict], tuple[Any, dict]] | None = None
 
 
 def writing_checkpoint(frame) -> bool:
@@ -161,7 +170,7 @@ def run_phase(phase: Phase, cfg: Config, dp: DataParallel, opts: RunOptions, log
 
 def _run_phase(phase, cfg, dp, opts, log, ckpt) -> TrainState:
     state = dp.replicate(phase.state) if dp.mode == "shard_map" else phase.state
-    start = 0
+    start, meta = 0, {}
     if ckpt.latest_step() is not None:
         if not opts.resume:
             raise RunError(f"{ckpt.directory} already holds checkpoints; pass `resume`")
@@ -175,24 +184,40 @@ def _run_phase(phase, cfg, dp, opts, log, ckpt) -> TrainState:
             phase.stream.set_state(meta["data_state"])
     if opts.resume:  # lines logged after the last checkpoint are written again
         log.truncate_after(phase.name, start)
-    if start >= phase.total_steps:
-        return dp.unreplicate(state) if dp.mode == "pmap" else state
-    state = dp.replicate(state) if dp.mode != "shard_map" else state
-    frozen = None if phase.frozen is None else dp.replicate(phase.frozen)
-    # what the checkpoint stores: global arrays under shard_map (multi-host safe), else one copy
-    frozen_to_save = frozen if dp.mode == "shard_map" else phase.frozen
-    step_fn = _train_step(dp, phase.loss_key, phase.accum_steps)
-
     def host_state(s):
         return dp.unreplicate(s) if dp.mode == "pmap" else s
 
+    frozen = None if phase.frozen is None else dp.replicate(phase.frozen)
+    # what the checkpoint stores: global arrays under shard_map (multi-host safe), else one copy
+    frozen_to_save = frozen if dp.mode == "shard_map" else phase.frozen
+
+    def finalized(s):
+        """(`s`, the last step's state as host_state places it, with `phase.finalize` applied;
+        the meta fields it adds)."""
+        variables = {"params": s.params, "batch_stats": s.batch_stats}
+        stats, record = phase.finalize(variables if dp.mode == "pmap" else dp.unreplicate(variables))
+        stats = dp.replicate(stats) if dp.mode == "shard_map" else stats
+        return s.replace(batch_stats=stats), {FINALIZED: record}
+
+    if start >= phase.total_steps:
+        state = host_state(state)
+        if phase.finalize is not None and ckpt.latest_step() is not None and FINALIZED not in meta:
+            log.info(phase.name, finalize=f"step {start} was saved before {phase.name} had its "
+                     "final statistics: computing them now")
+            state, added = finalized(state)
+            ckpt.replace(start, state, {**meta, **added}, frozen=frozen_to_save)
+        return state
+    state = dp.replicate(state) if dp.mode != "shard_map" else state
+    step_fn = _train_step(dp, phase.loss_key, phase.accum_steps)
+
     saved = {"step": start}
+    final_meta: dict = {}
 
     def save(step, force=False):
         if saved["step"] == step:
             return
         meta = {**phase.meta, "config": to_dict(cfg), "data_state": phase.stream.get_state(),
-                "total_steps": phase.total_steps}
+                "total_steps": phase.total_steps, **final_meta}
         if ckpt.save(step, host_state(state), meta, frozen=frozen_to_save, force=force):
             saved["step"] = step
 
@@ -216,6 +241,9 @@ def _run_phase(phase, cfg, dp, opts, log, ckpt) -> TrainState:
                     save(step, force=True)
                     raise RunError(f"{phase.name} step {step}: non-finite loss {values}; "
                                    f"checkpoint saved in {ckpt.directory}")
+            if step == phase.total_steps and phase.finalize is not None:
+                final, final_meta = finalized(host_state(state))
+                state = dp.replicate(final) if dp.mode == "pmap" else final
             if phase.evaluate is not None and cfg.eval_every and step % cfg.eval_every == 0:
                 log.write({"step": step, "stage": phase.name, "kind": "eval",
                            **phase.evaluate(host_state(state))})

@@ -37,6 +37,7 @@ from irdepth_jax.runs.variables import (
     read_trained_on,
     take_stage1_settings,
 )
+from irdepth_jax.train.batch_statistics import phase_batch_stats
 from irdepth_jax.train.phase import Phase, RunOptions, make_parallel, run_phase, steps_for
 from irdepth_jax.train.runlog import RunLog, check_same_data, prepare_workdir, record_data
 from irdepth_jax.train.state import TrainState, stage1_optimizer, stage2_optimizer
@@ -71,6 +72,10 @@ def _full_disk_in_one_line(train: Callable) -> Callable:
 @_full_disk_in_one_line
 def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     """Stage I-1 (reconstruction pre-training) then I-2 (soft multi-task) into `opts.workdir`.
+
+    Each phase ends with exact BatchNorm statistics of its final weights
+    (`train.batch_statistics`), stored in its last checkpoint; resuming a run finished without
+    them computes them.
 
     Returns {'unet': final variables, 'steps': {phase: total steps}}.
     """
@@ -117,7 +122,8 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                                   "steps": {**done, phase_name: total}}
             phase = Phase(phase_name, state, (stage1_loss_fn, cfg, phase_name),
                           s1.accum_steps, s1.batch_size, total, stream, evaluate=evaluate,
-                          step_offset=sum(done.values()), meta=meta)
+                          step_offset=sum(done.values()), meta=meta,
+                          finalize=phase_batch_stats(cfg, dataset, idx, phase_name))
             final = run_phase(phase, cfg, dp, opts, log)
             variables = _unet_vars(final)
             if phase_name == "stage1_i1":  # the step I-2 starts from
