@@ -45,8 +45,9 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
       gt: MS2: the depth label version the metrics compare with (`data.ms2.DEPTH_LABELS`;
         None: depth_filtered); recorded as protocol.ground_truth.
     Returns:
-      {'stage', 'split', 'trained_on' (`read_trained_on`), 'warnings' (the ways the split's
-      frames differ in kind from the training frames: `input_warnings`), 'protocol': {'stride',
+      {'stage', 'split', 'trained_on' (`read_trained_on`), 'warnings' (a model of an older
+      version: `statistics_warnings`; the ways the split's frames differ in kind from the
+      training frames: `input_warnings`), 'protocol': {'stride',
       'frames', 'align', 'clamp': [min, max] m,
       'depth': 'metric' | 'relative', 'reconstruction': what PSNR / SSIM compare with}, 'stage1':
       table or None (no psnr / ssim for MS2, which has no camera 8-bit image), 'stage2': table
@@ -70,8 +71,8 @@ def evaluate_run(path: str, data: str, split: str = "test", fmt: str = "auto",
                      "reconstruction": (None if source.format == "ms2"
                                         else "the dataset's 8-bit camera image (ir8)")},
         "segmentation_branch": model["segmentation"], "trained_on": model.get("trained_on"),
-        "warnings": input_warnings(model.get("trained_on"), {tuple(described["frame_size"])},
-                                   described["kind"])}
+        "warnings": model["warnings"] + input_warnings(
+            model.get("trained_on"), {tuple(described["frame_size"])}, described["kind"])}
     if model["unet"] is not None:
         result["stage1"] = evaluate_stage1(cfg, model["unet"], dataset, indices, dp,
                                            seg_frames=source.seg_frames(split))

@@ -189,6 +189,8 @@ def _say_what_the_model_makes(path: str, cfg: Config, model: dict, bits: int,
                   "a scale it did not see in training", file=sys.stderr)
     _say_what_it_was_trained_on(path, model.get("trained_on"),
                                 {shape for sequence in found.sequences for shape, _ in sequence.shapes})
+    for line in model["warnings"]:
+        print(f"irdepth: WARNING: {line}", file=sys.stderr)
     if model["depth"] is not None and not cfg.depth.metric:
         print(f"irdepth: note: {path} predicts relative depth (depth.metric=false): "
               "NAME_depth_relative.png holds depth x 256 up to an unknown scale, not metres; "

@@ -11,10 +11,9 @@ from trained_runs import copy_run
 from irdepth_jax.config import from_dict, get_config
 from irdepth_jax.models.pipeline import unet_input
 from irdepth_jax.models.unet import MTSAUNet
-from irdepth_jax.runs.checkpoint import REPLACED, Checkpointer, read_meta, restore_model
-from irdepth_jax.runs.variables import init_unet, unet_shapes
+from irdepth_jax.runs.checkpoint import FINALIZED, REPLACED, Checkpointer, read_meta, restore_model
+from irdepth_jax.runs.variables import init_unet, load_model, statistics_warnings, unet_shapes
 from irdepth_jax.train.batch_statistics import phase_batch_stats, recompute_batch_stats
-from irdepth_jax.train.phase import FINALIZED
 
 PHASES = ("stage1_i1", "stage1_i2")
 
@@ -81,15 +80,30 @@ def test_resuming_a_run_finished_without_them_computes_them(stage1_run, syntheti
     unfinalise(run, cfg, PHASES)
     for phase in PHASES:
         assert FINALIZED not in read_meta(str(run / "checkpoints" / phase))
+    (warning,) = load_model(str(run))[2]["warnings"]
+    assert "running averages" in warning and "--resume" in warning
     with open(run / "metrics.jsonl") as f:
         steps_before = [json.loads(line) for line in f if '"loss"' in line]
     train("stage1", synthetic_data, run, "--resume")
+    assert load_model(str(run))[2]["warnings"] == []
     with open(run / "metrics.jsonl") as f:
         assert [json.loads(line) for line in f if '"loss"' in line] == steps_before  # no step again
     for phase in PHASES:
         model, meta = _phase_model(run, phase, cfg)
         assert FINALIZED in meta and _close(model["batch_stats"], finalised[phase])
         assert not any(n.endswith(REPLACED) for n in os.listdir(run / "checkpoints" / phase))
+
+
+def test_a_stage2_model_says_whether_its_stage1_statistics_were_exact(stage2_run):
+    """A Stage II run records the statistics record of the Stage I model it trained on; a Stage II
+    of an older version (none recorded) is warned about, one without a Stage I model is not."""
+    cfg, stage, model = load_model(str(stage2_run))
+    assert stage == "stage2" and model["warnings"] == []
+    assert model["trained_on"]["stage1_batch_stats"]["recomputed"]
+    older = {"stage": "stage2", "trained_on": {"stage1": model["trained_on"]["stage1"]}}
+    (warning,) = statistics_warnings("RUN", older)
+    assert warning.startswith("RUN: ") and "running averages" in warning
+    assert statistics_warnings("RUN", {"stage": "stage2", "trained_on": {"stage1": None}}) == []
 
 
 def test_a_replace_cut_short_keeps_the_step(stage1_run, tmp_path):

@@ -68,9 +68,8 @@ def unfinalise(run, cfg, phases) -> None:
     statistics in place of the exact ones, and no `train.phase.FINALIZED` record."""
     import jax
 
-    from irdepth_jax.runs.checkpoint import Checkpointer
+    from irdepth_jax.runs.checkpoint import FINALIZED, Checkpointer
     from irdepth_jax.runs.variables import init_unet
-    from irdepth_jax.train.phase import FINALIZED
     from irdepth_jax.train.state import TrainState, stage1_optimizer
 
     stale = init_unet(cfg)["batch_stats"]

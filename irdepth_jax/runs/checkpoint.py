@@ -42,6 +42,11 @@ from irdepth_jax.runs.legacy_names import from_legacy, has_legacy_keys, to_legac
 STAGES = ("stage1_i1", "stage1_i2", "stage2")
 """The training phases a run directory holds checkpoints of (``checkpoints/<stage>``)."""
 
+FINALIZED = "batch_stats"
+"""The meta field of a phase's last checkpoint that holds `train.phase.Phase.finalize`'s record
+(Stage I: how its exact BatchNorm statistics were made). Absent from a Stage I run finished
+before phases had one: its statistics are training's running averages until it is resumed."""
+
 
 class CheckpointError(IrdepthError, ValueError):
     """A checkpoint that is missing, of another stage or of another shape (one-line message)."""

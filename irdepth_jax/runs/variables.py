@@ -17,7 +17,7 @@ from irdepth_jax.errors import RunError, one_line
 from irdepth_jax.models.pipeline import depth_model_config
 from irdepth_jax.models.unet import MTSAUNet
 from irdepth_jax.program_cache import cached_shapes
-from irdepth_jax.runs.checkpoint import CheckpointError, find_checkpoint, read_meta, restore_items
+from irdepth_jax.runs.checkpoint import FINALIZED, CheckpointError, find_checkpoint, read_meta, restore_items
 
 STAGE1_STAGES = ("stage1_i2", "stage1_i1")
 """Checkpoints a Stage II run starts from: I-2, or I-1 when there is no I-2."""
@@ -271,6 +271,34 @@ def input_warnings(trained_on: dict | None, frame_sizes: Collection[tuple[int, i
     return found
 
 
+STALE_STATISTICS = ("its MTSA-UNet's BatchNorm statistics are training's running averages (a "
+                    "Stage I finished before phases ended with exact statistics), which cost "
+                    "up to 10 dB of reconstruction PSNR")
+
+
+def stage1_statistics(meta: dict) -> dict | None:
+    """How the MTSA-UNet's BatchNorm statistics of the model whose checkpoint meta is `meta`
+    were made: a Stage I checkpoint's `FINALIZED` record; a Stage II's, the record of the
+    Stage I model it was trained on (``trained_on['stage1_batch_stats']``); None when they are
+    training's running averages (a run of an older version)."""
+    if str(meta.get("stage", "")).startswith("stage1"):
+        return meta.get(FINALIZED)
+    return (meta.get("trained_on") or {}).get("stage1_batch_stats")
+
+
+def statistics_warnings(path: str, meta: dict) -> list[str]:
+    """A warning line when the model at `path` (checkpoint meta `meta`) has an MTSA-UNet whose
+    BatchNorm statistics are running averages (`stage1_statistics`), with the fix."""
+    stage = str(meta.get("stage", ""))
+    if stage == "stage2" and not (meta.get("trained_on") or {}).get("stage1"):
+        return []  # no Stage I model (e.g. a baseline on tone-mapped frames)
+    if stage not in ("stage1_i1", "stage1_i2", "stage2") or stage1_statistics(meta) is not None:
+        return []
+    fix = (f"`irdepth train stage1 --resume --workdir {path}` computes them" if stage.startswith("stage1")
+           else "train it again from a Stage I run resumed once with `irdepth train stage1 --resume`")
+    return [f"{path}: {STALE_STATISTICS}; {fix}"]
+
+
 def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, dict]:
     """Loads a trained model for evaluation / prediction.
 
@@ -280,7 +308,8 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
     Returns:
       (config of the run, stage, {'unet': Stage I variables or None, 'depth': Depth Anything V2
       params or None, 'segmentation': what the segmentation branch was trained on, as the
-      run recorded it (`load_stage1`), or None, 'trained_on': `read_trained_on`'s record}).
+      run recorded it (`load_stage1`), or None, 'trained_on': `read_trained_on`'s record,
+      'warnings': `statistics_warnings`}).
     """
     from irdepth_jax.config import apply_overrides
 
@@ -290,12 +319,14 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
         cfg = apply_overrides(from_dict(meta["config"]), list(overrides))
         segmentation = meta.get("segmentation")
         trained_on = meta.get("trained_on")
+        warnings = statistics_warnings(path, meta)
         if stage == "stage1_i1":
             segmentation = {"labeled_frames": 0, "why": "Stage I-1 only (no I-2 checkpoint)"}
         if stage.startswith("stage1"):
             items, _ = restore_items(directory, stage, {"model": unet_shapes(cfg)})
             return cfg, stage, {"unet": dict(items["model"]), "depth": None,
-                                "segmentation": segmentation, "trained_on": trained_on}
+                                "segmentation": segmentation, "trained_on": trained_on,
+                                "warnings": warnings}
         templates = {"model": {"params": depth_shapes(cfg), "batch_stats": {}}}
         has_unet = cfg.stage2.preprocessing in STAGE1_IMAGES or cfg.stage2.sky_loss
         if has_unet:
@@ -305,4 +336,5 @@ def load_model(path: str, overrides: Sequence[str] = ()) -> tuple[Config, str, d
         raise RunError(str(err)) from None
     unet = dict(items["frozen"]["unet"]) if has_unet else None
     return cfg, stage, {"unet": unet, "depth": items["model"]["params"],
-                        "segmentation": segmentation, "trained_on": trained_on}
+                        "segmentation": segmentation, "trained_on": trained_on,
+                        "warnings": warnings}

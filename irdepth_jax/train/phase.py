@@ -26,15 +26,11 @@ from tqdm.auto import tqdm
 from irdepth_jax.config import Config, to_dict
 from irdepth_jax.data.source import BatchStream, device_batch
 from irdepth_jax.errors import Interrupted, RunError
-from irdepth_jax.runs.checkpoint import Checkpointer
+from irdepth_jax.runs.checkpoint import FINALIZED, Checkpointer
 from irdepth_jax.train.parallel import DataParallel
 from irdepth_jax.train.runlog import RunLog
 from irdepth_jax.train.state import TrainState
 from irdepth_jax.train.steps import make_train_step
-
-FINALIZED = "batch_stats"
-"""The checkpoint meta field of a phase's last step that holds `Phase.finalize`'s record (absent
-from a run finished before its phase had one: it is finalised when the run is resumed)."""
 
 
 @dataclasses.dataclass

@@ -28,13 +28,14 @@ from irdepth_jax.data.source import (
 from irdepth_jax.errors import RunError
 from irdepth_jax.evaluators import evaluate_stage1, evaluate_stage2
 from irdepth_jax.fileio import describe_disk, disk_full
-from irdepth_jax.runs.checkpoint import CheckpointError, has_checkpoint, read_meta
+from irdepth_jax.runs.checkpoint import CheckpointError, find_checkpoint, has_checkpoint, read_meta
 from irdepth_jax.runs.variables import (
     STAGE1_STAGES,
+    STALE_STATISTICS,
     init_depth,
     init_unet,
     load_stage1,
-    read_trained_on,
+    stage1_statistics,
     take_stage1_settings,
 )
 from irdepth_jax.train.batch_statistics import phase_batch_stats
@@ -248,10 +249,12 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                        "for a baseline without it use stage2.preprocessing=he "
                        "stage2.sky_loss=false")
     unet, segmentation = None, {"labeled_frames": None, "why": "no Stage I model"}
-    stage1_trained_on = None
+    stage1_trained_on = stage1_batch_stats = None
     if opts.stage1_checkpoint is not None:
         unet, segmentation = load_stage1(opts.stage1_checkpoint, cfg)
-        stage1_trained_on = read_trained_on(opts.stage1_checkpoint, STAGE1_STAGES)
+        stage1_meta = read_meta(find_checkpoint(opts.stage1_checkpoint, STAGE1_STAGES)[0])
+        stage1_trained_on = stage1_meta.get("trained_on")
+        stage1_batch_stats = stage1_statistics(stage1_meta)
         check_segmentation_use(cfg, segmentation, opts.stage1_checkpoint)
     dataset, train_idx = phase_frames(source, "stage2", cfg)
     ref_depth = sky_reference_depth(cfg, source.max_depth())
@@ -265,6 +268,10 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         if unet is not None:
             log.info("stage2", stage1=opts.stage1_checkpoint, segmentation_branch=segmentation,
                      hue_mode=s2.hue_mode)
+        if unet is not None and stage1_batch_stats is None:
+            log.info("stage2", warning=f"`stage1_checkpoint` {opts.stage1_checkpoint}: {STALE_STATISTICS}, "
+                     "and they make the images this run trains on: resume it once with "
+                     "`irdepth train stage1 --resume` first")
         if taken:
             log.info("stage2", settings_from_stage1={k: f"{v[1]} (was {v[0]})" for k, v in taken.items()})
         log.info("stage2", input=s2.preprocessing,
@@ -280,7 +287,7 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
         frozen = None if unet is None else {"unet": unet}
         trained_on = {"data": source.describe(), "frames": len(train_idx),
                       "steps": {"stage2": total}, "depth_network": depth_init,
-                      "stage1": stage1_trained_on}
+                      "stage1": stage1_trained_on, "stage1_batch_stats": stage1_batch_stats}
         phase = Phase("stage2", state, (stage2_loss_fn, cfg, ref_depth), 1, s2.batch_size, total,
                       stream, frozen=frozen, evaluate=evaluate,
                       meta={"segmentation": segmentation, "trained_on": trained_on})
