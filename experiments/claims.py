@@ -245,12 +245,20 @@ def depth_gates(records: dict[str, dict]) -> dict:
             "control_margin_d1": GATE_HSV_MARGIN, "pretrained_network": committed}
 
 
+STAGE1_GATE_HISTORY = (
+    "post hoc: with training's running-average BatchNorm statistics these Stage I models scored "
+    "mean mIoU 0.597 and failed the gate (2026-12-07); the exact statistics (STAGE1_MODEL_VERSION "
+    "2) came after that failure, found through table 2's seed-1 outlier, so this gate's outcome "
+    "is not a pre-registered one")
+"""Said beside gate 2 wherever it is reported (claims.json 'history', claims.md)."""
+
+
 def stage1_gate(records: dict[str, dict]) -> dict:
     """Gate 2: {'passed', 'miou' (the lowest depth table's mean over its Stage I models, or
-    None), 'threshold', 'why'}. Each depth table records the Stage I models its rows started
+    None), 'threshold', 'why', 'history' (`STAGE1_GATE_HISTORY`)}. Each depth table records the Stage I models its rows started
     from (`runner._stage1_models`); the gate needs every present depth table's mean mIoU >= the
     threshold."""
-    gate = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU}
+    gate = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU, "history": STAGE1_GATE_HISTORY}
     tables = [t for t in DEPTH_TABLES if t in records]
     if not tables:
         return gate | {"why": "no depth table"}
@@ -425,7 +433,7 @@ def claims_markdown(records: dict[str, dict], rows: list[dict]) -> str:
                  + ("" if gates["pretrained_network"]["used_by_tables"] else "; these tables did "
                     "not start from it")] if gates["pretrained_network"] else []),
               f"- Stage I: {'passed' if gates['stage1']['passed'] else 'FAILED'} "
-              f"({gates['stage1']['why']})",
+              f"({gates['stage1']['why']}; {gates['stage1']['history']})",
               f"- blank-image control: each depth claim's row must beat its table's "
               f"'{BLANK_ROW}' row by >= {GATE_HSV_MARGIN} δ<1.25"]
     lines += ["", "Verdicts: " + ", ".join(f"{v}: {n}" for v, n in sorted(counts.items())) + ".",

@@ -67,7 +67,7 @@ def phase_batch_stats(cfg: Config, dataset, indices: np.ndarray, phase: str
 
     def finalize(variables: dict) -> tuple[dict, dict]:
         loader = Loader(dataset, indices, batch_size=batch_size, seed=cfg.seed, shuffle=True,
-                        drop_remainder=True, augment=False)
+                        drop_remainder=True, augment=False, process_index=0, process_count=1)
         stats, frames = recompute_batch_stats(cfg, variables, itertools.islice(iter(loader), batches))
         return stats, {"recomputed": True, "frames": frames, "batch_size": batch_size,
                        "from": f"{phase} training frames, un-augmented"}
