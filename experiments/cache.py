@@ -75,9 +75,10 @@ COMMITTED_FILES = ("config.json", "trained.json", "data_fingerprint.json", "metr
 
 def git_commit() -> str:
     """HEAD commit of the repository (+ '-dirty' with uncommitted changes to the code: the
-    package, the experiment scripts and pyproject.toml; not the results they write), or
-    'unknown'."""
-    code = ["irdepth_jax", "experiments", ":!experiments/results", "pyproject.toml"]
+    package, the experiment scripts and pyproject.toml; not the results and committed runs they
+    write), or 'unknown'."""
+    code = ["irdepth_jax", "experiments", ":!experiments/results", ":!experiments/pretrained",
+            "pyproject.toml"]
     try:
         head = subprocess.run(["git", "-C", REPO, "rev-parse", "--short", "HEAD"],
                               capture_output=True, text=True, check=True).stdout.strip()

@@ -255,9 +255,9 @@ STAGE1_GATE_HISTORY = (
 
 def stage1_gate(records: dict[str, dict]) -> dict:
     """Gate 2: {'passed', 'miou' (the lowest depth table's mean over its Stage I models, or
-    None), 'threshold', 'why', 'history' (`STAGE1_GATE_HISTORY`)}. Each depth table records the Stage I models its rows started
-    from (`runner._stage1_models`); the gate needs every present depth table's mean mIoU >= the
-    threshold."""
+    None), 'threshold', 'why', 'history' (`STAGE1_GATE_HISTORY`)}. Each depth table records the
+    Stage I models its rows started from (`runner._stage1_models`); the gate needs every present
+    depth table's mean mIoU >= the threshold."""
     gate = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU, "history": STAGE1_GATE_HISTORY}
     tables = [t for t in DEPTH_TABLES if t in records]
     if not tables:

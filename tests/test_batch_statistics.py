@@ -81,7 +81,7 @@ def test_resuming_a_run_finished_without_them_computes_them(stage1_run, syntheti
     for phase in PHASES:
         assert FINALIZED not in read_meta(str(run / "checkpoints" / phase))
     (warning,) = load_model(str(run))[2]["warnings"]
-    assert "running averages" in warning and "--resume" in warning
+    assert "running averages" in warning and "`resume`" in warning
     with open(run / "metrics.jsonl") as f:
         steps_before = [json.loads(line) for line in f if '"loss"' in line]
     train("stage1", synthetic_data, run, "--resume")

@@ -105,7 +105,7 @@ def depth_model(monkeypatch):
     cfg = dataclasses.replace(TINY, stage2=dataclasses.replace(
         TINY.stage2, preprocessing="he", sky_loss=False))
     monkeypatch.setattr(variables, "load_model",
-                        lambda path, overrides=(): (cfg, "stage2", {"unet": None, "depth": {}}))
+                        lambda path, overrides=(): (cfg, "stage2", {"unet": None, "depth": {}, "warnings": []}))
     rng = np.random.default_rng(0)
     monkeypatch.setattr(pipeline, "run_pipeline", lambda unet, params, raw, cfg, image: {
         "depth": rng.uniform(1, 80, image.shape[:3]).astype(np.float32), "rgb": image,

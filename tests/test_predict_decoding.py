@@ -25,7 +25,7 @@ CFG = dataclasses.replace(get_config("tiny"), stage2=dataclasses.replace(
 def stand_in_model(monkeypatch):
     """A Stage II model whose depth is its input image's first channel x `scale` metres."""
     monkeypatch.setattr(variables, "load_model",
-                        lambda path, overrides=(): (CFG, "stage2", {"unet": None, "depth": {}}))
+                        lambda path, overrides=(): (CFG, "stage2", {"unet": None, "depth": {}, "warnings": []}))
     scale = {"metres": 10.0}
     monkeypatch.setattr(pipeline, "run_pipeline", lambda unet, params, raw, cfg, image: {
         "depth": np.asarray(image)[..., 0] * scale["metres"] + 0.5, "rgb": image, "hsv": None})

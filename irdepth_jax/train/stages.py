@@ -270,8 +270,8 @@ def train_stage2(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
                      hue_mode=s2.hue_mode)
         if unet is not None and stage1_batch_stats is None:
             log.info("stage2", warning=f"`stage1_checkpoint` {opts.stage1_checkpoint}: {STALE_STATISTICS}, "
-                     "and they make the images this run trains on: resume it once with "
-                     "`irdepth train stage1 --resume` first")
+                     "and they make the images this run trains on: resume it once first (train "
+                     "stage1 with `resume`)")
         if taken:
             log.info("stage2", settings_from_stage1={k: f"{v[1]} (was {v[0]})" for k, v in taken.items()})
         log.info("stage2", input=s2.preprocessing,
