@@ -44,8 +44,7 @@ def test_recomputed_statistics_are_each_batchnorms_exact_statistics():
 
 
 def _phase_model(run, phase, cfg):
-    return restore_model(os.path.join(run, "checkpoints", phase), phase,
-                         {"params": unet_shapes(cfg)["params"], "batch_stats": unet_shapes(cfg)["batch_stats"]})
+    return restore_model(os.path.join(run, "checkpoints", phase), phase, unet_shapes(cfg))
 
 
 def _config(run):

@@ -294,8 +294,8 @@ def statistics_warnings(path: str, meta: dict) -> list[str]:
         return []  # no Stage I model (e.g. a baseline on tone-mapped frames)
     if stage not in ("stage1_i1", "stage1_i2", "stage2") or stage1_statistics(meta) is not None:
         return []
-    fix = (f"train stage1 with `resume` and `workdir` {path} computes them (nothing is trained "
-           "again)" if stage.startswith("stage1")
+    fix = (f"train stage1 with `resume` and `workdir` {path} computes them"
+           if stage.startswith("stage1")
            else "train it again from that Stage I run resumed once (train stage1 with `resume`)")
     return [f"{path}: {STALE_STATISTICS}; {fix}"]
 

@@ -12,6 +12,7 @@ reconstruction-only models 3 to 10 dB of PSNR (docs/experiments.md, "BatchNorm s
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 from collections.abc import Callable, Iterable
 
@@ -34,19 +35,11 @@ def recompute_batch_stats(cfg: Config, variables: dict, batches: Iterable[dict])
     train-mode passes at momentum 0 (the running average is then the batch's own); the weights
     in `variables` ({'params', 'batch_stats'}, host arrays) are used unchanged.
     """
-    exact = MTSAUNet(dataclasses.replace(cfg.unet, bn_momentum=0.0))
-
-    @jax.jit
-    def batch_statistics(variables, raw, brightness):
-        _, updated = exact.apply(variables, unet_input(raw, cfg, brightness), train=True,
-                                 mutable=["batch_stats"])
-        return updated["batch_stats"]
-
     total, count, frames = None, 0, 0
     for batch in batches:
         brightness = batch.get("brightness")
-        stats = batch_statistics(variables, jnp.asarray(batch["raw14"]),
-                                 None if brightness is None else jnp.asarray(brightness))
+        stats = _batch_statistics(cfg, variables, jnp.asarray(batch["raw14"]),
+                                  None if brightness is None else jnp.asarray(brightness))
         total = stats if total is None else jax.tree.map(jnp.add, total, stats)
         count, frames = count + 1, frames + len(batch["raw14"])
     if count == 0:
@@ -54,11 +47,21 @@ def recompute_batch_stats(cfg: Config, variables: dict, batches: Iterable[dict])
     return jax.tree.map(lambda x: np.asarray(x / count), total), frames
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _batch_statistics(cfg: Config, variables: dict, raw, brightness) -> dict:
+    """One batch's BatchNorm statistics: a train-mode pass at momentum 0 (compiled once per
+    config and batch shape, so a run's two phases share it)."""
+    exact = MTSAUNet(dataclasses.replace(cfg.unet, bn_momentum=0.0))
+    _, updated = exact.apply(variables, unet_input(raw, cfg, brightness), train=True,
+                             mutable=["batch_stats"])
+    return updated["batch_stats"]
+
+
 def phase_batch_stats(cfg: Config, dataset, indices: np.ndarray, phase: str
                       ) -> Callable[[dict], tuple[dict, dict]]:
     """The `train.phase.Phase.finalize` of a Stage I phase trained on `indices` of `dataset`:
     variables ({'params', 'batch_stats'}, host arrays) -> (recomputed batch_stats, the record
-    stored in the final checkpoint's meta, `train.phase.FINALIZED`). Every process takes the same
+    stored in the final checkpoint's meta, `runs.checkpoint.FINALIZED`). Every process takes the same
     batches (a fixed shuffle of seed `cfg.seed`), so replicas stay identical."""
     from irdepth_jax.data.loader import Loader
 
