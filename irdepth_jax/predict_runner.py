@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import time
 from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
@@ -23,12 +22,6 @@ from irdepth_jax.predict_settings import DEFAULT_BATCH
 
 READ_AHEAD = 2
 """Batches decoded ahead of the model."""
-
-EXPORT_MIN_S = 5.0
-"""A pipeline whose first trace and compile took at least this long is kept in the program
-cache (`program_cache.keep_export`) for the next start; a quicker one is not (writing and
-reading it costs about what it saves there), as JAX's persistent cache skips quick compiles."""
-
 
 def default_batch_size() -> int:
     """`DEFAULT_BATCH` of the default JAX backend (8 for accelerators other than CPU)."""
@@ -78,18 +71,16 @@ class Predictor:
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
         made_from = to_dict(self.cfg)
         exported = kept_export("pipeline", made_from, args, kwargs)
-        if exported is not None:  # a warm start: the program is not traced again
+        if exported is None and directory() is not None:
+            # traced into an exported program, kept, and that program compiled (once): its compile
+            # in JAX's persistent cache is then the one the next start's `kept_export` asks for
+            exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
+                *args, **kwargs)
+            keep_export("pipeline", made_from, exported, args, kwargs)
+        if exported is not None:  # a warm start traces nothing
             compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
-        else:
-            started = time.perf_counter()
+        else:  # no caches: nothing to keep for a next start
             compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
-            if directory() is not None and time.perf_counter() - started >= EXPORT_MIN_S:
-                exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
-                    *args, **kwargs)
-                keep_export("pipeline", made_from, exported, args, kwargs)
-                # the exported program compiled now too, so that JAX's persistent cache holds
-                # the compile the next start's `kept_export` asks for
-                compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
             frames = f"a batch of {batch} frames" if batch > 1 else "one frame"

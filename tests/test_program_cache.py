@@ -89,7 +89,6 @@ def test_predictor_from_the_program_cache_matches_run_pipeline(cache_dir, monkey
     from irdepth_jax.models import pipeline
 
     enable_compilation_cache(str(cache_dir.parent / "xla"), min_compile_time_s=0.0)  # every compile kept
-    monkeypatch.setattr(predict_runner, "EXPORT_MIN_S", 0.0)  # tiny models compile quicker than it
     model = {"unet": None, "depth": random_depth(CFG)}
     raw = np.random.default_rng(0).integers(0, 2**14, (1, 32, 48)).astype(np.uint16)
     predict_runner.Predictor(CFG, model, 14).dispatch(raw)
