@@ -72,7 +72,7 @@ from irdepth_experiments.bench_common import (
 )
 from irdepth_jax.config import get_config
 from irdepth_jax.models.unet import MTSAUNet
-from irdepth_jax.xla_cpu import training_layers
+from irdepth_jax.xla_cpu import native_requested, training_layers
 
 ADADELTA = {"learning_rate": 1.0, "rho": 0.9, "eps": 1e-6}
 """Stage I's AdaDelta (irdepth_jax.train.state) for both; torch.optim.Adadelta calls the rate lr."""
@@ -401,6 +401,7 @@ def main(argv=None) -> dict:
         "keep_freed_memory": not args.default_malloc,
         "opponent": args.opponent if with_torch else None,
         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY", "runtime default"),
+        "native_cpu_kernel": native_requested(),  # the opt-in C++ kernel gradient (NATIVE_ENV)
         "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(), **versions(),
     }
     title = f"MTSA-UNet vs PyTorch ({args.opponent})" if with_torch else "MTSA-UNet"
