@@ -56,6 +56,7 @@ from irdepth_experiments.depth_network import GATE_HSV_MARGIN, GATE_RECORD, GATE
 from irdepth_experiments.report import COLUMN_NAMES, HIGHER_IS_BETTER
 from irdepth_experiments.runner import RECON_COLUMNS, RESULTS
 from irdepth_experiments.seed_stats import ALPHA, POWER, detectable_effect, holm, seed_level, seeds_needed
+from irdepth_experiments.stage1_replication import REPLICATION_RECORD
 
 METHOD = ("paired t over seeds (df = seeds - 1), two-sided 95 %; Holm within the table; "
           "detectable effect at 80 % power from the noncentral t")
@@ -253,12 +254,17 @@ STAGE1_GATE_HISTORY = (
 """Said beside gate 2 wherever it is reported (claims.json 'history', claims.md)."""
 
 
-def stage1_gate(records: dict[str, dict]) -> dict:
+def stage1_gate(records: dict[str, dict], replicated: dict | None = None) -> dict:
     """Gate 2: {'passed', 'miou' (the lowest depth table's mean over its Stage I models, or
-    None), 'threshold', 'why', 'history' (`STAGE1_GATE_HISTORY`)}. Each depth table records the
-    Stage I models its rows started from (`runner._stage1_models`); the gate needs every present
-    depth table's mean mIoU >= the threshold."""
-    gate = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU, "history": STAGE1_GATE_HISTORY}
+    None), 'threshold', 'why', 'history' (`STAGE1_GATE_HISTORY`), 'replication'}. Each depth
+    table records the Stage I models its rows started from (`runner._stage1_models`); the gate
+    needs every present depth table's mean mIoU >= the threshold and, once it is measured, the
+    pre-registered replication at new seeds (`stage1_replication.py`; `replicated`: its record,
+    by default the committed one) to pass too."""
+    if replicated is None:
+        replicated = committed_replication()
+    gate = {"passed": False, "miou": None, "threshold": GATE_STAGE1_MIOU, "history": STAGE1_GATE_HISTORY,
+            "replication": replicated}
     tables = [t for t in DEPTH_TABLES if t in records]
     if not tables:
         return gate | {"why": "no depth table"}
@@ -269,10 +275,25 @@ def stage1_gate(records: dict[str, dict]) -> dict:
                               "started from (made before the record, or no segmentation labels)"}
     means = {t: float(np.mean([m["miou"] for m in records[t]["stage1_models"]])) for t in tables}
     lowest = min(means.values())
-    return gate | {"miou": round(lowest, 4), "passed": lowest >= GATE_STAGE1_MIOU,
-                   "why": "mIoU of the Stage I models the depth rows started from, mean over "
-                          "seeds: " + ", ".join(f"{t} {m:.3f}" for t, m in means.items())
-                          + f"; the gate is >= {GATE_STAGE1_MIOU}"}
+    why = ("mIoU of the Stage I models the depth rows started from, mean over seeds: "
+           + ", ".join(f"{t} {m:.3f}" for t, m in means.items()) + f"; the gate is >= {GATE_STAGE1_MIOU}")
+    if replicated is None:
+        why += "; its pre-registered replication (experiments/stage1_replication.py) not yet run"
+    else:
+        why += (f"; pre-registered replication at seeds {', '.join(map(str, replicated['seeds']))}: "
+                f"mean {replicated['mean']:.3f}, {'passed' if replicated['passed'] else 'FAILED'}")
+    passed = lowest >= GATE_STAGE1_MIOU and (replicated is None or bool(replicated["passed"]))
+    return gate | {"miou": round(lowest, 4), "passed": passed, "why": why}
+
+
+def committed_replication(path: str | None = None) -> dict | None:
+    """The committed record of gate 2's pre-registered replication (`stage1_replication.py`;
+    `path`: by default `REPLICATION_RECORD`), or None before it is measured."""
+    path = REPLICATION_RECORD if path is None else path
+    if not os.path.exists(path):
+        return None
+    with open(path) as f:
+        return json.load(f)
 
 
 def committed_network(path: str = GATE_RECORD) -> dict | None:

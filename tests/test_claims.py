@@ -124,7 +124,13 @@ def _depth_records(hsv_d1, blank_d1, network, miou):
     return {"table1_preprocessing": t1}
 
 
-def test_depth_claims_are_undecidable_unless_every_gate_passes():
+@pytest.fixture
+def no_replication(tmp_path, monkeypatch):
+    """Gate 2 without a committed replication record (the synthetic records stand alone)."""
+    monkeypatch.setattr(claims, "REPLICATION_RECORD", str(tmp_path / "none.json"))
+
+
+def test_depth_claims_are_undecidable_unless_every_gate_passes(no_replication):
     """Gate by gate: a random-init depth network, a Stage I below the mIoU gate, a missing blank
     row, and a row less than 0.10 δ<1.25 above the blank row each make a table-1 claim
     'undecidable: <that gate>'; with all three passed there is no gate verdict."""
@@ -160,6 +166,31 @@ def test_depth_claims_are_undecidable_unless_every_gate_passes():
     table2 = claims.Claim("table2_multitask_reconstruction", "", ("a", "all"), ("b", "all"), "ssim",
                           ("a", "b"))
     assert claims._undecidable(table2, {}, claims.depth_gates({})) is None
+
+
+def test_gate_2_needs_its_pre_registered_replication_to_pass_once_it_is_measured(no_replication):
+    """The replication's rule worked by hand (mean of seeds 3 and 4 >= 0.6), and gate 2 with it:
+    not yet run -> the tables' models decide, said so; passed -> passes; failed -> gate 2
+    fails and a depth claim is 'undecidable: Stage I gate' though the tables' models passed."""
+    from irdepth_experiments.stage1_replication import replication
+
+    passed, failed = replication({3: 0.62, 4: 0.59}), replication({3: 0.61, 4: 0.58})
+    assert passed["mean"] == pytest.approx(0.605) and passed["passed"]
+    assert failed["mean"] == pytest.approx(0.595) and not failed["passed"]
+    with pytest.raises(ValueError, match="seeds"):
+        replication({3: 0.7, 5: 0.7})  # not the pre-registered seeds
+    network = {"passed": True, "rule": "r", "rgb_d1": 0.9, "blank_d1": 0.3}
+    records = _depth_records([0.80, 0.82, 0.81], [0.60, 0.65, 0.70], network, 0.7)
+    claim = claims.CLAIMS[0]
+    alone = claims.stage1_gate(records)
+    assert alone["passed"] and alone["replication"] is None and "not yet run" in alone["why"]
+    assert claims.stage1_gate(records, passed)["passed"]
+    gate = claims.stage1_gate(records, failed)
+    assert not gate["passed"] and gate["miou"] == pytest.approx(0.7) and "FAILED" in gate["why"]
+    with open(claims.REPLICATION_RECORD, "w") as f:
+        json.dump(failed, f)
+    assert claims._undecidable(claim, records[claim.table], claims.depth_gates(records)) == \
+        "undecidable: Stage I gate"
 
 
 def test_the_committed_pretrained_network_is_shown_and_whether_the_tables_used_it(tmp_path, monkeypatch):
