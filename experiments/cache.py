@@ -220,12 +220,16 @@ class Context:
         self.stage1_eval_key = hashlib.sha1(
             f"{self.eval_key} {STAGE1_MODEL_VERSION}".encode()).hexdigest()[:12]
 
-    def eval_path(self, run: str, suffix: str = ".json") -> str:
-        """The file of run `run`'s evaluation on this evaluation set (`suffix` '.json': the
+    def eval_file(self, run: str, suffix: str = ".json") -> str:
+        """The name of run `run`'s evaluation file on this evaluation set (`suffix` '.json': the
         record, '.npz': its per-frame metrics); a Stage I run's is keyed by
         `STAGE1_MODEL_VERSION` too."""
         key = self.stage1_eval_key if run.startswith("stage1") else self.eval_key
-        return os.path.join(self.cache, "runs", run, f"eval-{key}{suffix}")
+        return f"eval-{key}{suffix}"
+
+    def eval_path(self, run: str, suffix: str = ".json") -> str:
+        """Where `eval_file` of run `run` is in this cache."""
+        return os.path.join(self.cache, "runs", run, self.eval_file(run, suffix))
 
     # ---------------------------------------------------------------- data
     def _dataset(self) -> tuple[str, dict]:
@@ -391,7 +395,7 @@ class Context:
             return
         if not os.path.isdir(os.path.join(committed, "checkpoints")) and (
                 weights or not os.path.exists(os.path.join(
-                    committed, os.path.basename(self.eval_path(os.path.basename(workdir)))))):
+                    committed, self.eval_file(os.path.basename(workdir))))):
             return
         self.log(f"using the committed run {os.path.relpath(committed, REPO)} (see its "
                  "MADE_BY.md; --no-committed-runs trains it instead)")
