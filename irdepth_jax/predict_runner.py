@@ -62,10 +62,8 @@ class Predictor:
             self._compiled[(batch, *shape)] = functools.partial(run_pipeline, cfg=self.cfg)
             return
         import jax
-        from jax import export
 
         from irdepth_jax.config import to_dict
-        from irdepth_jax.models.pipeline import pipeline_outputs
         from irdepth_jax.program_cache import directory, keep_export, kept_export
 
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
@@ -74,12 +72,12 @@ class Predictor:
         if exported is None and directory() is not None:
             # traced into an exported program, kept, and that program compiled (once): its compile
             # in JAX's persistent cache is then the one the next start's `kept_export` asks for
-            exported = export.export(jax.jit(functools.partial(pipeline_outputs, cfg=self.cfg)))(
-                *args, **kwargs)
-            keep_export("pipeline", made_from, exported, args, kwargs)
-        if exported is not None:  # a warm start traces nothing
+            exported = _exported_pipeline(self.cfg, args, kwargs)
+            if exported is not None:
+                keep_export("pipeline", made_from, exported, args, kwargs)
+        if exported is not None:  # kept by an earlier start (this one traces nothing) or just made
             compiled = jax.jit(exported.call).lower(*args, **kwargs).compile()
-        else:  # no caches: nothing to keep for a next start
+        else:  # no program cache, or a program JAX cannot export
             compiled = run_pipeline.lower(*args, self.cfg, **kwargs).compile()
         need, free = program_bytes(compiled), available_bytes()
         if need is not None and free is not None and need > free:
@@ -109,6 +107,24 @@ class Predictor:
         keys = [k for k in ("depth", "rgb", "hsv")
                 if out[k] is not None and (k == "depth" or self.model["unet"] is not None)]
         return {k: np.asarray(v) for k, v in zip(keys, jax.device_get([out[k] for k in keys]))}
+
+
+def _exported_pipeline(cfg: Config, args: tuple, kwargs: dict):
+    """`pipeline_outputs` of `cfg` as a `jax.export.Exported` for (args, kwargs), or None where
+    JAX refuses to serialise it: a custom call without a compatibility guarantee in the
+    program, such as cuDNN's fused attention of a bfloat16 ViT on a GPU (that pipeline is then
+    compiled by the plain jit, and traced again on every start)."""
+    import jax
+    from jax import export
+
+    from irdepth_jax.models.pipeline import pipeline_outputs
+
+    try:
+        return export.export(jax.jit(functools.partial(pipeline_outputs, cfg=cfg)))(*args, **kwargs)
+    except ValueError as err:
+        if "custom calls whose targets have no compatibility guarantees" not in str(err):
+            raise
+        return None
 
 
 def program_bytes(compiled) -> int | None:

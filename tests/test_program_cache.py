@@ -112,3 +112,38 @@ def test_predictor_from_the_program_cache_matches_run_pipeline(cache_dir, monkey
     image = jnp.asarray(host_image({"raw14": raw}, "he"))
     expected = pipeline.run_pipeline(None, model["depth"], None, CFG, image=image)
     np.testing.assert_allclose(depth, np.asarray(expected["depth"]), rtol=1e-6, atol=1e-6)
+
+
+def test_a_pipeline_jax_cannot_export_is_compiled_by_the_plain_jit(cache_dir, monkeypatch):
+    """A program with a custom call that has no compatibility guarantee (cuDNN's fused
+    attention of a bfloat16 ViT on a GPU) cannot be exported: `irdepth predict` then compiles
+    `run_pipeline` itself, keeps nothing, and gives its depth; another ValueError still raises."""
+    from irdepth_jax import predict_runner
+    from irdepth_jax.data.source import host_image
+    from irdepth_jax.models import pipeline
+
+    def refuse(_fn):
+        def export(*_args, **_kwargs):
+            raise ValueError("Cannot serialize code with custom calls whose targets have no "
+                             "compatibility guarantees. Examples are: __cudnn$fmhaSoftmax")
+        return export
+
+    monkeypatch.setattr(jax.export, "export", refuse)
+    model = {"unet": None, "depth": random_depth(CFG)}
+    raw = np.random.default_rng(0).integers(0, 2**14, (1, 32, 48)).astype(np.uint16)
+    predictor = predict_runner.Predictor(CFG, model, 14)
+    depth = np.asarray(predictor.dispatch(raw)["depth"])
+    args, kwargs = predictor._arguments(raw)
+    assert program_cache.kept_export("pipeline", to_dict(CFG), args, kwargs) is None
+    image = jnp.asarray(host_image({"raw14": raw}, "he"))
+    expected = pipeline.run_pipeline(None, model["depth"], None, CFG, image=image)
+    np.testing.assert_allclose(depth, np.asarray(expected["depth"]), rtol=1e-6, atol=1e-6)
+
+    def broken(_fn):
+        def export(*_args, **_kwargs):
+            raise ValueError("something else")
+        return export
+
+    monkeypatch.setattr(jax.export, "export", broken)
+    with pytest.raises(ValueError, match="something else"):
+        predict_runner.Predictor(CFG, model, 14).dispatch(raw)
