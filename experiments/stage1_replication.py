@@ -18,8 +18,9 @@ on 2026-12-07 together with this script):
     python experiments/stage1_replication.py --set data.scenes=varied stage1.steps_i2=2500
 
 (about 40 minutes per seed on 2 cores; finished runs are reused from the cache). Writes
-`experiments/results/stage1_replication.json`: each seed's run and mIoU, the mean, the rule and
-whether it passed, the command and the git commit.
+`experiments/results/stage1_replication/stage1_replication.json` (`--out` names another folder):
+each seed's run and mIoU, the mean, the rule and whether it passed, the command, the git commit
+it was written at and the code each run was trained by.
 """
 
 from __future__ import annotations
@@ -33,14 +34,14 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.cache import Context, cache_relative, git_commit
+from irdepth_experiments.cache import Context, cache_relative, code_versions, git_commit
 from irdepth_experiments.depth_network import GATE_STAGE1_MIOU
 from irdepth_experiments.runner import RESULTS, Table, parse_args
 from irdepth_jax.hostmem import keep_freed_memory
 
 REPLICATION_SEEDS = (3, 4)
 """Fixed before the replication's runs were trained; the tables use seeds 0-2."""
-REPLICATION_RECORD = os.path.join(RESULTS, "stage1_replication.json")
+REPLICATION_RECORD = os.path.join(RESULTS, "stage1_replication", "stage1_replication.json")
 RULE = (f"mean mIoU over seeds {' and '.join(map(str, REPLICATION_SEEDS))} of the protocol's Stage I "
         f"model >= {GATE_STAGE1_MIOU} (fixed before those runs were trained)")
 
@@ -108,13 +109,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         record = ctx.result("stage1", (), seed)
         runs[str(seed)] = record["run"]
         miou[seed] = record["stage1"]["all"]["miou"]
-    result = {**replication(miou), "runs": runs, "overrides": list(args.overrides),
+    trained_by = {seed: code_versions(os.path.join(ctx.cache, "runs", run)) for seed, run in runs.items()}
+    result = {**replication(miou), "runs": runs, "trained_by": trained_by, "overrides": list(args.overrides),
               "command": " ".join(["python", "experiments/stage1_replication.py"]
                                   + [shlex.quote(a) for a in argv]),
               "git": git_commit(), "eval_data": ctx.eval_info["path"],
               "wall_s": round(time.time() - started, 1)}
     result = json.loads(cache_relative(json.dumps(result), ctx.cache))
-    out = REPLICATION_RECORD if args.out is None else os.path.join(args.out, "stage1_replication.json")
+    out = os.path.join(args.out, os.path.basename(REPLICATION_RECORD))  # REPLICATION_RECORD by default
     os.makedirs(os.path.dirname(out), exist_ok=True)
     with open(out, "w") as f:
         json.dump(result, f, indent=1)
