@@ -17,7 +17,9 @@ on 2026-12-07 together with this script):
 
     python experiments/stage1_replication.py --set data.scenes=varied stage1.steps_i2=2500
 
-(about 40 minutes per seed on 2 cores; finished runs are reused from the cache). Writes
+(about 25 minutes per seed on 2 cores; finished runs are reused from the cache, and with
+`--commit-stage1` their records and evaluations go to experiments/pretrained, from where a clone's
+run of the command takes them instead of training). Writes
 `experiments/results/stage1_replication/stage1_replication.json` (`--out` names another folder):
 each seed's run and mIoU, the mean, the rule and whether it passed, the command, the git commit
 it was written at and the code each run was trained by.
@@ -34,7 +36,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from irdepth_experiments.cache import Context, cache_relative, code_versions, git_commit
+from irdepth_experiments.cache import COMMITTED_RUNS, Context, cache_relative, code_versions, commit_run, git_commit
 from irdepth_experiments.depth_network import GATE_STAGE1_MIOU
 from irdepth_experiments.runner import RESULTS, Table, parse_args
 from irdepth_jax.hostmem import keep_freed_memory
@@ -121,6 +123,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     with open(out, "w") as f:
         json.dump(result, f, indent=1)
         f.write("\n")
+    if args.commit_stage1:  # records and evaluations only: no Stage II row starts from these
+        for seed, run in runs.items():
+            made_by = (f"# Stage I model (MTSA-UNet), seed {seed}\n\nMade by `{result['command']}` "
+                       f"(git {result['git']}, with --commit-stage1): gate 2's pre-registered "
+                       "replication (experiments/stage1_replication.py); its records and evaluation, "
+                       f"without weights. mIoU {result['miou'][seed]} on the evaluation set "
+                       f"({result['eval_data']}).\n")
+            ctx.log(f"[stage1_replication] committed {commit_run(ctx.cache, run, COMMITTED_RUNS, made_by)}")
     ctx.log(f"[stage1_replication] mIoU {result['miou']}, mean {result['mean']:.4f}: "
             f"{'passed' if result['passed'] else 'FAILED'} ({RULE}); wrote {out}")
     return result
