@@ -247,10 +247,11 @@ def depth_gates(records: dict[str, dict]) -> dict:
 
 
 STAGE1_GATE_HISTORY = (
-    "post hoc: with training's running-average BatchNorm statistics these Stage I models scored "
-    "mean mIoU 0.597 and failed the gate (2026-12-07); the exact statistics (STAGE1_MODEL_VERSION "
-    "2) came after that failure, found through table 2's seed-1 outlier, so this gate's outcome "
-    "is not a pre-registered one")
+    "post hoc on seeds 0-2: with training's running-average BatchNorm statistics these Stage I "
+    "models scored mean mIoU 0.597 and failed the gate (2026-12-07); the exact statistics "
+    "(STAGE1_MODEL_VERSION 2) came after that failure, found through table 2's seed-1 outlier, so "
+    "their pass is not a pre-registered one; the replication at seeds 3 and 4 "
+    "(experiments/stage1_replication.py) had its rule committed before its runs were trained")
 """Said beside gate 2 wherever it is reported (claims.json 'history', claims.md)."""
 
 
