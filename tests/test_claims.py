@@ -306,3 +306,25 @@ def test_committed_verdicts_of_direction_hold_at_seed_level():
         low, high = stats.t.interval(0.95, len(d) - 1, loc=d.mean(), scale=d.std(ddof=1) / math.sqrt(len(d)))
         assert (low > 0) if c["verdict"] == "reproduced" else (high < 0), c["claim"]
         assert c["p_holm"] < 0.05
+
+
+def test_committed_replication_is_what_its_committed_runs_scored():
+    """A reviewer's recomputation of gate 2's replication: each seed's mIoU in the committed
+    record is its committed run's evaluation, the mean and the verdict follow from the rule, the
+    seeds are the pre-registered ones, and claims.json's gate carries the same record."""
+    from irdepth_experiments.cache import COMMITTED_RUNS
+    from irdepth_experiments.stage1_replication import REPLICATION_RECORD, REPLICATION_SEEDS, replication
+
+    if not os.path.exists(REPLICATION_RECORD):
+        pytest.skip("no committed replication record")
+    with open(REPLICATION_RECORD) as f:
+        record = json.load(f)
+    scored = {}
+    for seed in REPLICATION_SEEDS:
+        run = os.path.join(COMMITTED_RUNS, record["runs"][str(seed)])
+        (evaluation,) = [n for n in os.listdir(run) if n.startswith("eval-") and n.endswith(".json")]
+        with open(os.path.join(run, evaluation)) as f:
+            scored[seed] = json.load(f)["stage1"]["all"]["miou"]
+    assert {k: record[k] for k in ("seeds", "miou", "mean", "threshold", "rule", "passed")} == \
+        replication(scored)
+    assert _committed()["depth_network"]["stage1"]["replication"] == record
