@@ -584,7 +584,7 @@ def _unfinalised(workdir: str) -> list[str]:
     BatchNorm statistics (finished before `STAGE1_MODEL_VERSION` 2), the I-1 phase first;
     a run that is not a Stage I run: none."""
     from irdepth_jax.runs.checkpoint import FINALIZED, has_checkpoint, read_meta
-    
+
     if not os.path.basename(workdir).startswith("stage1"):
         return []
     phases = []

@@ -84,11 +84,9 @@ def depth_tables_overrides() -> list[str] | None:
                 record = json.load(f)
             if record.get("stage1_models"):
                 found[name] = record["overrides"]
-    if not found:
-        return None
-    if any(o != next(iter(found.values())) for o in found.values()):
+    if len({tuple(o) for o in found.values()}) > 1:
         raise SystemExit(f"the committed depth tables were made with different --set: {found}")
-    return next(iter(found.values()))
+    return next(iter(found.values()), None)
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -110,7 +108,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     for seed in REPLICATION_SEEDS:
         record = ctx.result("stage1", (), seed)
         runs[str(seed)] = record["run"]
-        miou[seed] = record["stage1"]["all"]["miou"]
+        miou[seed] = record["stage1"]["all"].get("miou")
+        if miou[seed] is None:
+            raise SystemExit(f"{record['run']}: its evaluation has no mIoU (no segmentation "
+                             "labels in the evaluation set); the replication cannot be decided")
     trained_by = {seed: code_versions(os.path.join(ctx.cache, "runs", run)) for seed, run in runs.items()}
     result = {**replication(miou), "runs": runs, "trained_by": trained_by, "overrides": list(args.overrides),
               "command": " ".join(["python", "experiments/stage1_replication.py"]
