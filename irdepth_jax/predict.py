@@ -77,8 +77,9 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         'auto' or 'MIN:MAX'; a matplotlib colour map), with a colour bar under it.
     Returns:
       the written paths and the skipped files (`Predicted`); a line on stderr names the skipped
-      files at the end, and a warning counts depth values over what a depth PNG holds (written
-      as 255.996 m, `data.depth_png`). All inputs are read (and checked) before anything is
+      files at the end, a warning counts depth values over what a depth PNG holds (written
+      as 255.996 m, `data.depth_png`) and another the nearly black pseudo-RGB images
+      (`predict_outputs.DarkImages`). All inputs are read (and checked) before anything is
       written, each frame decoded once (`data.inputs.FrameReader`).
     Raises:
       RunError naming the input file when a prediction is not finite (NaN / inf), before that
@@ -118,8 +119,9 @@ def predict_files(path: str, inputs: Sequence[str], out_dir: str,
         writers.close()
         bar.close()
         release(lock)
-    if writers.over_range.message():
-        print(f"irdepth: WARNING: {writers.over_range.message()}", file=sys.stderr)
+    for counted in (writers.over_range, writers.dark_rgb):
+        if counted.message():
+            print(f"irdepth: WARNING: {counted.message()}", file=sys.stderr)
     if unreadable_summary(found):
         print(unreadable_summary(found), file=sys.stderr)
     return Predicted(writers.written, found.unreadable)
@@ -214,6 +216,8 @@ def _predict_pngs(predictor: Predictor, found: FoundInputs, out_dir: str, batch_
     def emit(frame: Frame, images: dict) -> None:
         stem = os.path.join(out_dir, frame.out_dir, frame.name)
         pngs = output_pngs(images, colours, depth_name, frame_label(frame), writers.over_range)
+        if "rgb" in images:
+            writers.dark_rgb.add(images["rgb"], frame_label(frame))
         for kind, image in pngs.items():
             writers.submit(f"{stem}_{kind}.png", image)
         if camera is not None:

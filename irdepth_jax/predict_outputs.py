@@ -79,15 +79,48 @@ def video_panels(raw: np.ndarray, images: dict, bits: int, colours: DepthColours
     return np.concatenate(panels + [depth], axis=1)
 
 
+DARK_RGB_MEAN = 0.02
+"""A pseudo-RGB image (values in [0, 1]) whose mean is under this (5 of 255) is nearly black."""
+
+
+class DarkImages:
+    """The pseudo-RGB images that came out nearly black (mean under `DARK_RGB_MEAN`), counted
+    over a run for one warning at its end: the depth network then sees almost no image."""
+
+    def __init__(self):
+        self.dark = self.images = 0
+        self.first = ""
+        """The frame of the first nearly black image."""
+
+    def add(self, rgb: np.ndarray, name: str) -> None:
+        """Counts the pseudo-RGB image (H, W, 3) in [0, 1] of the frame `name`."""
+        self.images += 1
+        if float(np.mean(rgb)) < DARK_RGB_MEAN:
+            self.dark += 1
+            self.first = self.first or name
+
+    def message(self) -> str | None:
+        """One line counting the nearly black images, or None when there were none."""
+        if not self.dark:
+            return None
+        return (f"{self.dark} of {self.images} pseudo-RGB images are nearly black (mean under "
+                f"{DARK_RGB_MEAN:.0%} of white; the first: {self.first}): the Stage I model makes "
+                "almost no texture (Value) of these frames, so the depth network's input is almost "
+                "empty and depth from it is not to be trusted; a model trained on frames like "
+                "these is needed")
+
+
 class Writers:
     """A thread pool writing output files; `check` raises the first failed write (in order).
-    `over_range` counts the depth values over what a depth PNG holds, over the run."""
+    Counted over the run: `over_range`, the depth values over what a depth PNG holds, and
+    `dark_rgb`, the nearly black pseudo-RGB images."""
 
     def __init__(self):
         self.pool = ThreadPoolExecutor(WRITERS, thread_name_prefix="irdepth-write")
         self.futures: list[tuple[str, Future]] = []
         self.written: list[str] = []
         self.over_range = OverRange()
+        self.dark_rgb = DarkImages()
 
     def submit(self, path: str, image: np.ndarray) -> None:
         """Writes `image` ((H, W) or (H, W, 3) BGR) as the PNG `path` on the pool."""

@@ -63,6 +63,8 @@ def predict_video(predictor: Predictor, found: FoundInputs, sequence: ThermalInp
 
     def emit(frame: Frame, images: dict) -> None:
         video.write(video_panels(frame.raw, images, predictor.bits, colours))
+        if "rgb" in images:
+            writers.dark_rgb.add(images["rgb"], frame_label(frame))
         if with_depth_png and "depth" in images:
             name = os.path.join(out_dir, frame.out_dir,
                                 f"{frame.name}_{depth_suffix(predictor.cfg)}.png")

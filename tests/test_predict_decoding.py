@@ -120,3 +120,31 @@ def test_depth_over_the_png_range_is_written_as_the_largest_with_one_warning(
     assert warning.startswith(f"irdepth: WARNING: {over} depth values of 3 depth maps (the first: "
                               "frame burst_p0000) are over 255.996 m (up to "), warning
     assert warning.endswith("the most a 16-bit depth PNG holds: written as 255.996 m")
+
+
+@pytest.mark.parametrize("video", [False, True])
+def test_nearly_black_pseudo_rgb_images_are_counted_in_one_warning(tmp_path, capsys, monkeypatch,
+                                                                   video):
+    """A Stage I model that makes almost no texture of the frames (a synthetic-trained model on
+    real MS2 counts: mean 1 of 255) leaves the depth network almost no image: one warning at the
+    end counts those pseudo-RGB images and names the first; the brighter frame is not counted."""
+    cfg = get_config("tiny")  # stage2.preprocessing=hsv: the pseudo-RGB is the depth input
+    monkeypatch.setattr(variables, "load_model", lambda path, overrides=(): (
+        cfg, "stage2", {"unet": {}, "depth": {}, "warnings": []}))
+
+    def stand_in(unet, params, raw, cfg, image=None):  # pseudo-RGB = counts / 2^14, grey
+        rgb = np.repeat(np.asarray(raw, np.float32)[..., None] / 2**14, 3, axis=-1)
+        return {"depth": np.full(raw.shape, 5.0, np.float32), "rgb": rgb, "hsv": rgb}
+
+    monkeypatch.setattr(pipeline, "run_pipeline", stand_in)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for name, low in (("bright", 8000), ("dark", 100)):  # means 0.49 and 0.009 of white
+        cv2.imwrite(str(folder / f"{name}.png"), rng.integers(low, low + 100, (24, 32)).astype(np.uint16))
+    code, err = predict(["--out", tmp_path / "out", *(["--video"] if video else []), folder], capsys)
+    assert code == 0, err
+    [warning] = [line for line in err.splitlines() if "WARNING" in line]
+    assert warning.startswith("irdepth: WARNING: 1 of 2 pseudo-RGB images are nearly black (mean "
+                              "under 2% of white; the first: frame dark): "), warning
+    assert "depth from it is not to be trusted" in warning
