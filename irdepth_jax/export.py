@@ -35,6 +35,7 @@ import numpy as np
 from irdepth_jax.config import CLASS_NAMES, STAGE1_IMAGES, Config, resolved_raw_bits, to_dict
 from irdepth_jax.errors import IrdepthError
 from irdepth_jax.fileio import make_dirs, write_bytes
+from irdepth_jax.models.dinov2 import attention_implementation
 from irdepth_jax.models.pipeline import raw_to_depth
 
 FORMATS = ("onnx", "stablehlo")
@@ -236,7 +237,8 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
       the metadata written (see the module docstring); ``check.max_abs_diff`` is the largest
       |artifact - JAX| depth difference on the sample frames, in metres.
     Raises:
-      ExportError (one line) for a bad argument or model, a converter failure, or a check
+      ExportError (one line) for a bad argument or model (one that would run a GPU-only kernel
+      included), a converter failure, or a check
       over `TOLERANCE` x max depth (nothing is written then); RunError from `load_model`.
     """
     from irdepth_jax.runs.variables import load_model
@@ -254,6 +256,11 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
         raise ExportError(f"`format` onnx: `checkpoint` {checkpoint} computes in "
                           f"depth.dtype={cfg.depth.dtype}, which onnxruntime's CPU kernels "
                           "(Einsum) do not take; use `format` stablehlo")
+    if attention_implementation("auto", jax.default_backend(), cfg.depth.dtype) == "cudnn":
+        raise ExportError(f"`checkpoint` {checkpoint} computes in depth.dtype={cfg.depth.dtype}, "
+                          "whose attention on this GPU is cuDNN's fused kernel: a custom call "
+                          "that jax.export cannot serialise and a CPU cannot run; export on the "
+                          "CPU (JAX_PLATFORMS=cpu): the artifact is lowered for CPUs and GPUs alike")
     bits = resolved_raw_bits(cfg)
     shape = (batch, height, width)
     raw = sample_frames(shape, bits, sample)

@@ -160,3 +160,7 @@ def test_sample_file_and_refusals(stage1_run, stage2_run, model, tmp_path, capsy
     monkeypatch.setattr(model_io, "load_model", lambda path: (bf16, "stage2", variables))
     with pytest.raises(export.ExportError, match="depth.dtype=bfloat16, .* use `format` stablehlo"):
         export.export_model("RUN", "onnx", height, width, batch, str(out))
+    # on a GPU a bfloat16 model's attention is cuDNN's fused kernel, which the artifact cannot hold
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+    with pytest.raises(export.ExportError, match="cuDNN's fused kernel: .*\(JAX_PLATFORMS=cpu\)"):
+        export.export_model("RUN", "stablehlo", height, width, batch, str(out))
