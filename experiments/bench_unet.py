@@ -72,6 +72,7 @@ from irdepth_experiments.bench_common import (
 )
 from irdepth_jax.config import get_config
 from irdepth_jax.models.unet import MTSAUNet
+from irdepth_jax.runs.variables import init_key
 from irdepth_jax.xla_cpu import native_requested, training_layers
 
 ADADELTA = {"learning_rate": 1.0, "rho": 0.9, "eps": 1e-6}
@@ -169,14 +170,17 @@ def bench_inputs(num_classes: int, size, batch: int):
 
 
 def init_variables(model: MTSAUNet, raw):
-    """Our random weights (key 0), the ones both sides run; (variables, compile seconds)."""
-    init, seconds = compiled_with_seconds(jax.jit(model.init), jax.random.key(0), raw)
-    return init(jax.random.key(0), raw), seconds
+    """Our random weights (`init_key(0)`, as the library's models), the ones both sides run;
+    (variables, compile seconds)."""
+    init, seconds = compiled_with_seconds(jax.jit(model.init), init_key(0), raw)
+    return init(init_key(0), raw), seconds
 
 
-def setup_ours(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
+def setup_ours(preset: str, use_rgg: bool, size, batch: int, peak_size: int, train_only: bool = False):
     """`Worker` set-up of our side: calls 'forward' (eval mode), 'train' (one AdaDelta step)
-    and 'matmul'; info: compile seconds, XLA's FLOP counts, the XLA pool's threads, device."""
+    and 'matmul'; info: compile seconds, XLA's FLOP counts, the XLA pool's threads, device.
+    `train_only`: the 'train' call and its info alone (no forward, matmul or plain-layer step
+    compiled: the GPU run's Stage I figure)."""
     model = MTSAUNet(unet_config(preset, use_rgg))
     raw, target, labels = (jnp.asarray(a) for a in bench_inputs(model.cfg.num_classes, size, batch))
     variables, init_s = init_variables(model, raw)
@@ -184,12 +188,14 @@ def setup_ours(preset: str, use_rgg: bool, size, batch: int, peak_size: int):
     # data passed as arguments: closed-over arrays would become constants XLA tries to fold
     step_args = (variables["params"], variables["batch_stats"], tx.init(variables["params"]), raw,
                  target, labels)
+    train_step, train_s = compiled_with_seconds(make_train_step(model, tx), *step_args)
+    train = {"train": lambda: jax.block_until_ready(train_step(*step_args)[-1])}
+    if train_only:
+        return train, {"compile_init_s": init_s, "compile_train_s": train_s, "train_flops": flops_of(train_step)}
     forward, fwd_s = compiled_with_seconds(jax.jit(functools.partial(model.apply, train=False)),
                                            variables, raw)
-    train_step, train_s = compiled_with_seconds(make_train_step(model, tx), *step_args)
     device = jax.devices()[0]
-    calls = {"forward": lambda: jax.block_until_ready(forward(variables, raw)),
-             "train": lambda: jax.block_until_ready(train_step(*step_args)[-1]),
+    calls = {"forward": lambda: jax.block_until_ready(forward(variables, raw)), **train,
              "matmul": matmul_call(peak_size, "jax")}
     info = {"compile_init_s": init_s, "compile_fwd_s": fwd_s, "compile_train_s": train_s,
             "fwd_flops": flops_of(forward), "train_flops": flops_of(train_step),

@@ -21,8 +21,10 @@ the `paper` UNet + ViT-S in bfloat16, writing every output PNG) on 512x640 frame
 batch 8 after a warm-up call that compiles. Writes OUT/stage1_predict.json.
 
 `table` (run by both parts): OUT/gpu.md from the JSON files there; a part not run reads "not yet
-measured on a GPU". --dry-run: the same code on tiny shapes in float32 on whatever device JAX
-has (seconds on a CPU: tests/test_gpu_run.py); its table says it is a dry run, not a GPU figure.
+measured on a GPU". --dry-run: the same code on tiny shapes, in bfloat16 with torch autocast as on
+the GPU, on whatever device JAX has (about a minute on a CPU: tests/test_gpu_run.py); part 1 runs
+ViT-S against the official code when its checkout is there (as the GPU run does), else the tiny
+encoder against transformers' port. Its table says it is a dry run, not a GPU figure.
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ NOT_MEASURED = "not yet measured on a GPU"
 SHAPES = {
     # part 1: encoder, size, train batch, compute dtype, torch autocast, peak matmul N, repeats, warmup
     "stage2": {"gpu": ("vits", "518x518", 8, "bfloat16", True, 8192, 20, 3),
-               "dry": ("tiny", "28x28", 1, "float32", False, 64, 1, 0)},
+               "dry": ("tiny", "28x28", 1, "bfloat16", True, 64, 1, 0)},
     # part 2: preset, Stage I size, batch, repeats; predict size, frames, batch, Depth Anything dtype
     "stage1": {"gpu": ("paper", (768, 1024), 4, 10, (512, 640), 32, 8, "bfloat16"),
                "dry": ("tiny", (32, 48), 2, 1, (32, 48), 4, 2, "float32")},
@@ -76,8 +78,9 @@ def run_stage2(dry: bool) -> dict:
     from irdepth_experiments.bench_depth_anything import official_code_present
 
     encoder, size, batch, dtype, amp, peak, repeats, warmup = SHAPES["stage2"]["dry" if dry else "gpu"]
-    # the dry run's tiny encoder exists in transformers' port only (the official code builds ViT-S up)
-    reference = "official" if official_code_present() and not dry else "transformers"
+    reference = "official" if official_code_present() else "transformers"
+    if dry and reference == "official":
+        encoder = "vits"  # the official code builds ViT-S up; the tiny encoder is transformers' port only
     if reference != "official" and not dry:
         print("gpu_run: no official Depth Anything V2 code at experiments/third_party/Depth-Anything-V2 "
               "(or $IRDEPTH_OFFICIAL_DA): timing against transformers' port instead")
@@ -120,7 +123,7 @@ def run_stage1(dry: bool) -> dict:
 
     preset, size, batch, repeats, p_size, p_frames, p_batch, p_dtype = SHAPES["stage1"]["dry" if dry else "gpu"]
     result = {"part": "stage1", "dry_run": dry, **_device(), "preset": preset}
-    calls, info = setup_ours(preset, True, size, batch, 64)
+    calls, info = setup_ours(preset, True, size, batch, 64, train_only=True)
     calls["train"]()  # the first call after compiling also allocates
     seconds = [wall_seconds(calls["train"]) for _ in range(repeats)]
     result["stage1"] = {"size": list(size), "batch": batch, "compile_s": info["compile_train_s"],
@@ -158,7 +161,7 @@ def write_table(out: str) -> str:
                 parts[part] = json.load(f)
     lines = ["# GPU figures (experiments/gpu_run.sh)", ""]
     if any(p.get("dry_run") for p in parts.values()):
-        lines += ["**DRY RUN on tiny shapes, float32: these are no GPU figures.**", ""]
+        lines += ["**DRY RUN on tiny shapes: these are no GPU figures.**", ""]
     for p in parts.values():
         lines.append(f"- {p['part']}: {p['device_kind']} ({p['platform']}), JAX {p['jax']}, {p['date']}")
     lines += ["", "| what | ours | official / reference | note |", "|---|---|---|---|"]
@@ -202,7 +205,7 @@ def write_table(out: str) -> str:
 def main(argv=None) -> dict | None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("part", choices=("stage2", "stage1", "table"))
-    parser.add_argument("--dry-run", action="store_true", help="tiny shapes, float32, any device")
+    parser.add_argument("--dry-run", action="store_true", help="tiny shapes, any device")
     parser.add_argument("--out", default=RESULTS, help="folder of the JSON files and gpu.md")
     args = parser.parse_args(argv)
     os.makedirs(args.out, exist_ok=True)

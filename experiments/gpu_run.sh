@@ -18,10 +18,11 @@ cd "$(dirname "$0")/.."
 part=${1:?usage: gpu_run.sh wheels|1|2|dry}
 out=${OUT:-experiments/results/gpu}
 wheels=experiments/gpu_wheels
-# our dependencies the GPU image may lack (import name:wheel), and matplotlib's
-needed="dm_pix:dm-pix matplotlib:matplotlib contourpy:contourpy cycler:cycler fontTools:fonttools
-kiwisolver:kiwisolver pyparsing:pyparsing dateutil:python-dateutil PIL:pillow tqdm:tqdm
-safetensors:safetensors"
+# our dependencies the GPU image may lack (import name:wheel), and dm-pix's and matplotlib's
+# (checked on 2026-12-08 against a Python 3.12 environment of only the image's packages)
+needed="dm_pix:dm-pix chex:chex toolz:toolz matplotlib:matplotlib contourpy:contourpy cycler:cycler
+fontTools:fonttools kiwisolver:kiwisolver pyparsing:pyparsing dateutil:python-dateutil PIL:pillow
+tqdm:tqdm safetensors:safetensors"
 
 if [[ $part == wheels ]]; then
   mkdir -p "$wheels"

@@ -103,9 +103,14 @@ def hf_to_official(model) -> dict[str, torch.Tensor]:
         out[f"pretrained.norm.{leaf}"] = sd[f"backbone.layernorm.{leaf}"]
         for b in range(model.config.backbone_config.num_hidden_layers):
             src, dst = f"backbone.encoder.layer.{b}.", f"pretrained.blocks.{b}."
-            qkv = [sd[f"{src}attention.{n}_proj.{leaf}"] for n in "qkv"]
+            if f"{src}attention.q_proj.{leaf}" in sd:  # transformers >= 5.2x
+                qkv = [sd[f"{src}attention.{n}_proj.{leaf}"] for n in "qkv"]
+                proj = sd[f"{src}attention.o_proj.{leaf}"]
+            else:  # the names of earlier versions (5.17 among them) and of the Hub's files
+                qkv = [sd[f"{src}attention.attention.{n}.{leaf}"] for n in ("query", "key", "value")]
+                proj = sd[f"{src}attention.output.dense.{leaf}"]
             out[f"{dst}attn.qkv.{leaf}"] = torch.cat(qkv, 0)
-            out[f"{dst}attn.proj.{leaf}"] = sd[f"{src}attention.o_proj.{leaf}"]
+            out[f"{dst}attn.proj.{leaf}"] = proj
             for n in ("norm1", "norm2", "mlp.fc1", "mlp.fc2"):
                 out[f"{dst}{n}.{leaf}"] = sd[f"{src}{n}.{leaf}"]
         for i in range(4):

@@ -1,10 +1,11 @@
 """The first GPU run's script (experiments/gpu_run.sh) runs end to end on a CPU in its dry-run
-mode (tiny shapes, float32), so that scarce GPU minutes are not spent on a typo; and its table
+mode (tiny shapes), so that scarce GPU minutes are not spent on a typo; and its table
 says what has not been measured on a GPU."""
 
 import json
 import os
 import subprocess
+import sys
 
 import pytest
 
@@ -28,16 +29,21 @@ def test_gpu_part_refuses_without_a_gpu(tmp_path):
         main(["stage1", "--out", str(tmp_path)])
 
 
-@pytest.mark.slow  # about 3 minutes on 2 cores: over the default suite's budget
 def test_dry_run_end_to_end(tmp_path):
-    env = {**os.environ, "OUT": str(tmp_path), "PYTHONPATH": ROOT}
+    from irdepth_experiments.bench_depth_anything import official_code_present
+
+    # the script's `python` is the one running this suite
+    path = os.pathsep.join([os.path.dirname(sys.executable), os.environ.get("PATH", "")])
+    env = {**os.environ, "OUT": str(tmp_path), "PYTHONPATH": ROOT, "PATH": path}
     run = subprocess.run(["bash", os.path.join(ROOT, "experiments", "gpu_run.sh"), "dry"], env=env,
                          capture_output=True, text=True, timeout=1800)
     assert run.returncode == 0, run.stderr[-3000:]
     stage2 = json.loads((tmp_path / "stage2_vits.json").read_text())
     stage1 = json.loads((tmp_path / "stage1_predict.json").read_text())
     assert stage2["dry_run"] and stage2["ours_images_per_s"] > 0 and stage2["reference_images_per_s"] > 0
-    assert stage2["reference"] == "transformers"  # the dry run's tiny encoder: transformers' port
+    # as on the GPU: against the official code where its checkout is, else transformers' port
+    assert stage2["reference"] == ("official" if official_code_present() else "transformers")
+    assert (stage2["dtype"], stage2["torch_autocast_bf16"]) == ("bfloat16", True)
     assert stage2["ours_mfu_measured_peak"] > 0 and stage2["step_gflop"] > 0
     assert stage1["stage1"]["images_per_s"] > 0 and stage1["predict"]["frames_per_s"] > 0
     table = (tmp_path / "gpu.md").read_text()
