@@ -327,14 +327,12 @@ class Context:
         """Optimizer steps of the Stage I run (I-1 + I-2) of a row's `overrides` for `seed`, as
         `irdepth_jax.train.stages.train_stage1` counts them on the benchmark's training data."""
         from irdepth_jax.data.source import phase_frames, stage1_i2_frames
-        from irdepth_jax.train.phase import steps_for
+        from irdepth_jax.train.stages import stage1_totals
 
         cfg = self.config("stage1", overrides, seed)
-        s1 = cfg.stage1
-        i1_frames = len(phase_frames(self.source, "stage1_i1", cfg)[1])
-        i2_frames = len(stage1_i2_frames(self.source, cfg)[1])
-        return (steps_for(s1.epochs_i1, s1.steps_i1, i1_frames, s1.batch_size)
-                + steps_for(s1.epochs_i2, s1.steps_i2, i2_frames, s1.batch_size))
+        frames = {"stage1_i1": len(phase_frames(self.source, "stage1_i1", cfg)[1]),
+                  "stage1_i2": len(stage1_i2_frames(self.source, cfg)[1])}
+        return sum(stage1_totals(cfg, frames).values())
 
     def run_dir(self, kind: str, cfg, data: str | None = None) -> str:
         """The cache directory of the run of `kind` with config `cfg`, trained on the benchmark's

@@ -70,6 +70,16 @@ def _full_disk_in_one_line(train: Callable) -> Callable:
     return run
 
 
+def stage1_totals(cfg: Config, frames: dict[str, int], steps: int | None = None) -> dict[str, int]:
+    """{'stage1_i1' | 'stage1_i2': optimizer steps} of a Stage I run of `cfg` with `frames`
+    {phase: training frames}; `steps` (a run's --steps) replaces the config's step counts."""
+    s1 = cfg.stage1
+    return {phase: steps_for(epochs, steps if steps is not None else configured, frames[phase],
+                             s1.batch_size)
+            for phase, epochs, configured in (("stage1_i1", s1.epochs_i1, s1.steps_i1),
+                                              ("stage1_i2", s1.epochs_i2, s1.steps_i2))}
+
+
 @_full_disk_in_one_line
 def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     """Stage I-1 (reconstruction pre-training) then I-2 (soft multi-task) into `opts.workdir`.
@@ -87,12 +97,9 @@ def train_stage1(cfg: Config, source: DataSource, opts: RunOptions) -> dict:
     i2_dataset, i2_idx, seg_info = stage1_i2_frames(source, cfg)  # refuses before any write
     frames = {"stage1_i1": phase_frames(source, "stage1_i1", cfg),
               "stage1_i2": (i2_dataset, i2_idx)}
-    dp = make_parallel(opts, s1.batch_size, s1.accum_steps, "stage1",
-                       {phase: len(idx) for phase, (_, idx) in frames.items()})
-    totals = {phase: steps_for(epochs, opts.steps if opts.steps is not None else steps,
-                               len(frames[phase][1]), s1.batch_size)
-              for phase, epochs, steps in (("stage1_i1", s1.epochs_i1, s1.steps_i1),
-                                           ("stage1_i2", s1.epochs_i2, s1.steps_i2))}
+    counts = {phase: len(idx) for phase, (_, idx) in frames.items()}
+    dp = make_parallel(opts, s1.batch_size, s1.accum_steps, "stage1", counts)
+    totals = stage1_totals(cfg, counts, opts.steps)
     if opts.resume:
         _check_i2_continues_i1(opts.workdir, totals["stage1_i1"])
     _prepare_workdir(opts, cfg, "stage1", source, frames)
