@@ -57,7 +57,7 @@ SHAPES = {
                "dry": ("tiny", "28x28", 1, "bfloat16", True, 64, 1, 0)},
     # part 2: preset, Stage I size, batch, repeats; predict size, frames, batch, Depth Anything dtype
     "stage1": {"gpu": ("paper", (768, 1024), 4, 10, (512, 640), 32, 8, "bfloat16"),
-               "dry": ("tiny", (32, 48), 2, 1, (32, 48), 4, 2, "float32")},
+               "dry": ("tiny", (32, 48), 2, 1, (32, 48), 4, 2, "bfloat16")},
 }
 
 

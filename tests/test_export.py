@@ -162,5 +162,5 @@ def test_sample_file_and_refusals(stage1_run, stage2_run, model, tmp_path, capsy
         export.export_model("RUN", "onnx", height, width, batch, str(out))
     # on a GPU a bfloat16 model's attention is cuDNN's fused kernel, which the artifact cannot hold
     monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-    with pytest.raises(export.ExportError, match="cuDNN's fused kernel: .*\(JAX_PLATFORMS=cpu\)"):
+    with pytest.raises(export.ExportError, match=r"cuDNN's fused kernel: .*\(JAX_PLATFORMS=cpu\)"):
         export.export_model("RUN", "stablehlo", height, width, batch, str(out))

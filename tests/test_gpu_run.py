@@ -46,5 +46,6 @@ def test_dry_run_end_to_end(tmp_path):
     assert (stage2["dtype"], stage2["torch_autocast_bf16"]) == ("bfloat16", True)
     assert stage2["ours_mfu_measured_peak"] > 0 and stage2["step_gflop"] > 0
     assert stage1["stage1"]["images_per_s"] > 0 and stage1["predict"]["frames_per_s"] > 0
+    assert stage1["predict"]["depth_dtype"] == "bfloat16"
     table = (tmp_path / "gpu.md").read_text()
     assert "DRY RUN" in table and "not yet measured" not in table
