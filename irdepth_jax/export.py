@@ -35,8 +35,7 @@ import numpy as np
 from irdepth_jax.config import CLASS_NAMES, STAGE1_IMAGES, Config, resolved_raw_bits, to_dict
 from irdepth_jax.errors import IrdepthError
 from irdepth_jax.fileio import make_dirs, write_bytes
-from irdepth_jax.models.dinov2 import attention_implementation
-from irdepth_jax.models.pipeline import raw_to_depth
+from irdepth_jax.models.pipeline import attention_kernel, raw_to_depth
 
 FORMATS = ("onnx", "stablehlo")
 STABLEHLO_PLATFORMS = ("cpu", "cuda")
@@ -256,7 +255,7 @@ def export_model(checkpoint: str, fmt: str, height: int, width: int, batch: int,
         raise ExportError(f"`format` onnx: `checkpoint` {checkpoint} computes in "
                           f"depth.dtype={cfg.depth.dtype}, which onnxruntime's CPU kernels "
                           "(Einsum) do not take; use `format` stablehlo")
-    if attention_implementation("auto", jax.default_backend(), cfg.depth.dtype) == "cudnn":
+    if attention_kernel(cfg) == "cudnn":
         raise ExportError(f"`checkpoint` {checkpoint} computes in depth.dtype={cfg.depth.dtype}, "
                           "whose attention on this GPU is cuDNN's fused kernel: a custom call "
                           "that jax.export cannot serialise and a CPU cannot run; export on the "

@@ -69,7 +69,7 @@ class Predictor:
         args, kwargs = self._arguments(np.zeros((batch, *shape), np.uint16))
         made_from = to_dict(self.cfg)
         exported = kept_export("pipeline", made_from, args, kwargs)
-        if exported is None and directory() is not None:
+        if exported is None and directory() is not None and not self._uses_cudnn_attention():
             # traced into an exported program, kept, and that program compiled (once): its compile
             # in JAX's persistent cache is then the one the next start's `kept_export` asks for
             exported = _exported_pipeline(self.cfg, args, kwargs)
@@ -87,6 +87,14 @@ class Predictor:
                            f"estimate for the compiled model), more than the {_bytes(free)} free "
                            f"here; use {advice}smaller frames (crop or resize them)")
         self._compiled[(batch, *shape)] = compiled
+
+    def _uses_cudnn_attention(self) -> bool:
+        """Whether the pipeline holds cuDNN's fused attention, which JAX never exports (known
+        before tracing it: every start would otherwise trace it twice, for the refused export
+        and for the plain jit)."""
+        from irdepth_jax.models.pipeline import attention_kernel
+
+        return self.model["depth"] is not None and attention_kernel(self.cfg) == "cudnn"
 
     def dispatch(self, raw: np.ndarray) -> dict:
         """Starts the model on raw (B, H, W) uint16 (JAX runs it asynchronously); returns the

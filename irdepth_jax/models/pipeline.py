@@ -33,6 +33,7 @@ from irdepth_jax.models.depth_anything import (
     network_input,
     resize_depth,
 )
+from irdepth_jax.models.dinov2 import attention_implementation
 from irdepth_jax.models.unet import MTSAUNet
 
 
@@ -41,6 +42,14 @@ def depth_model_config(cfg: Config) -> DepthAnythingConfig:
     d = cfg.depth
     return depth_anything_config(d.encoder, metric=d.metric, max_depth=d.max_depth,
                                  dtype=d.dtype, remat=d.remat)
+
+
+def attention_kernel(cfg: Config) -> str:
+    """The attention kernel `cfg`'s depth network runs on the default backend
+    (`dinov2.attention_implementation` of its 'auto': 'cudnn' for a bfloat16 model on a GPU,
+    a custom call that `jax.export` cannot serialise)."""
+    da = depth_model_config(cfg)
+    return attention_implementation(da.attention, jax.default_backend(), da.dtype)
 
 
 def unet_input(raw: jax.Array, cfg: Config, brightness: jax.Array | None = None) -> jax.Array:
